@@ -1,0 +1,1 @@
+"""File formats: BOP datasets, point clouds (PLY), JSON results."""
