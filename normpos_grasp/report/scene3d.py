@@ -1,0 +1,153 @@
+"""A 3D digital twin of one frame (the paper's Fig. 6): measured points, fitted templates, cell, robot, gripper.
+
+`TwinScene` is a flat list of coloured meshes and point clouds in the world frame (metres, z up). It exports to
+GLB through trimesh and to a compact JSON payload for the HTML viewer.
+"""
+
+from __future__ import annotations
+
+import base64
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from normpos_grasp.errors import InputError
+from normpos_grasp.typing import FloatArray
+
+Color = tuple[int, int, int]
+
+PALETTE: tuple[Color, ...] = (
+    (230, 25, 75),
+    (60, 180, 75),
+    (255, 225, 25),
+    (0, 130, 200),
+    (245, 130, 48),
+    (145, 30, 180),
+    (70, 240, 240),
+    (240, 50, 230),
+    (210, 245, 60),
+    (250, 190, 212),
+    (0, 128, 128),
+    (170, 110, 40),
+)
+
+
+def palette_color(index: int) -> Color:
+    """A distinct RGB colour for instance `index` (cycles after 12)."""
+    return PALETTE[index % len(PALETTE)]
+
+
+@dataclass
+class TwinScene:
+    """Coloured meshes and point clouds in the world frame."""
+
+    meshes: list[tuple[str, trimesh.Trimesh, Color, float]] = field(default_factory=list)
+    clouds: list[tuple[str, FloatArray, FloatArray]] = field(default_factory=list)
+
+    def add_mesh(self, name: str, mesh: trimesh.Trimesh, color: Color, opacity: float = 1.0) -> None:
+        """Add a mesh already placed in the world frame (metres)."""
+        if len(mesh.faces) == 0:
+            raise InputError(f"mesh {name!r} has no faces")
+        self.meshes.append((name, mesh, color, float(opacity)))
+
+    def add_posed_mesh(
+        self, name: str, mesh: trimesh.Trimesh, world_from_mesh: FloatArray, color: Color, opacity: float = 1.0
+    ) -> None:
+        """Add a copy of `mesh` transformed by `world_from_mesh` (4, 4)."""
+        placed = mesh.copy()
+        placed.apply_transform(np.asarray(world_from_mesh, dtype=np.float64))
+        self.add_mesh(name, placed, color, opacity)
+
+    def add_box(
+        self, name: str, world_from_box: FloatArray, size: FloatArray, color: Color, opacity: float = 1.0
+    ) -> None:
+        """Add a box of full extents `size` (3,) metres at `world_from_box`."""
+        self.add_mesh(name, trimesh.creation.box(extents=size, transform=world_from_box), color, opacity)
+
+    def add_capsule(
+        self, name: str, world_from_capsule: FloatArray, radius: float, length: float, color: Color
+    ) -> None:
+        """Add a capsule along its local z axis (cylinder `length` between the hemisphere centres)."""
+        capsule = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
+        capsule.apply_translation([0.0, 0.0, -length / 2.0])  # trimesh's capsule starts at z = 0
+        self.add_posed_mesh(name, capsule, world_from_capsule, color)
+
+    def add_points(self, name: str, points: FloatArray, colors: FloatArray | Color, max_points: int = 20000) -> None:
+        """Add a point cloud (N, 3) with per-point (N, 3) uint8 colours or one colour; subsampled to `max_points`."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        cols = np.asarray(colors, dtype=np.float64)
+        cols = np.broadcast_to(cols, pts.shape) if cols.ndim == 1 else cols.reshape(-1, 3)
+        if len(pts) > max_points:
+            keep = np.linspace(0, len(pts) - 1, max_points).astype(np.int64)
+            pts, cols = pts[keep], cols[keep]
+        self.clouds.append((name, pts, np.asarray(cols, dtype=np.float64)))
+
+    def add_axes(self, name: str, world_from_frame: FloatArray, length: float = 0.05) -> None:
+        """Add an RGB axis triad (x red, y green, z blue) as thin boxes."""
+        for axis, color in zip(range(3), ((230, 30, 30), (30, 200, 30), (30, 60, 230)), strict=True):
+            offset = np.eye(4)
+            offset[axis, 3] = length / 2.0
+            size = np.full(3, length * 0.08)
+            size[axis] = length
+            self.add_box(f"{name}_{'xyz'[axis]}", np.asarray(world_from_frame) @ offset, size, color)
+
+    def bounds(self) -> FloatArray:
+        """(2, 3) min and max corner of everything in the scene, metres."""
+        parts = [m.bounds for _, m, _, _ in self.meshes] + [
+            np.array([p.min(0), p.max(0)]) for _, p, _ in self.clouds if len(p)
+        ]
+        if not parts:
+            return np.array([[-0.5, -0.5, 0.0], [0.5, 0.5, 0.5]])
+        stacked = np.concatenate(parts)
+        return np.array([stacked.min(0), stacked.max(0)])
+
+    def to_trimesh_scene(self) -> trimesh.Scene:
+        scene = trimesh.Scene()
+        for name, mesh, color, opacity in self.meshes:
+            coloured = mesh.copy()
+            rgba = np.array([*color, round(255 * opacity)], dtype=np.uint8)
+            coloured.visual = trimesh.visual.ColorVisuals(coloured, face_colors=np.tile(rgba, (len(mesh.faces), 1)))
+            scene.add_geometry(coloured, node_name=name, geom_name=name)
+        for name, pts, cols in self.clouds:
+            if len(pts):
+                rgba = np.column_stack([cols, np.full(len(pts), 255.0)]).astype(np.uint8)
+                scene.add_geometry(trimesh.PointCloud(pts, colors=rgba), node_name=name, geom_name=name)
+        return scene
+
+    def export_glb(self, path: str | Path) -> None:
+        """Write the scene as binary glTF (GLB); written to a temporary file and renamed."""
+        target = Path(path)
+        tmp = target.with_name(target.name + ".tmp")
+        tmp.write_bytes(self.to_trimesh_scene().export(file_type="glb"))
+        tmp.replace(target)
+
+    def to_payload(self) -> dict[str, Any]:
+        """JSON-ready description for the HTML viewer: base64 little-endian float32/uint32 buffers."""
+        meshes = []
+        for name, mesh, color, opacity in self.meshes:
+            meshes.append(
+                {
+                    "name": name,
+                    "color": [c / 255.0 for c in color],
+                    "opacity": opacity,
+                    "positions": _b64(np.asarray(mesh.vertices, dtype="<f4")),
+                    "indices": _b64(np.asarray(mesh.faces, dtype="<u4")),
+                }
+            )
+        clouds = []
+        for name, pts, cols in self.clouds:
+            clouds.append(
+                {
+                    "name": name,
+                    "positions": _b64(np.asarray(pts, dtype="<f4")),
+                    "colors": _b64(np.asarray(cols / 255.0, dtype="<f4")),
+                }
+            )
+        return {"meshes": meshes, "clouds": clouds, "bounds": self.bounds().tolist()}
+
+
+def _b64(array: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(array).tobytes()).decode("ascii")
