@@ -1,0 +1,48 @@
+"""`normpos-grasp emulate-ur`: run a loopback UR controller that the unmodified ur_rtde clients can drive."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from typing import Any
+
+from normpos_grasp.sim.ur_emulator import EmulatorOptions, UREmulator
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "emulate-ur",
+        help="run a loopback UR controller (RTDE 30004, dashboard 29999, script 30003)",
+        description="Serve RTDE, dashboard and script ports on a loopback address so that ur_rtde's receive, "
+        "control and IO interfaces run moves on a simulated arm at 500 Hz. Faults: dashboard lines "
+        "'emu protective_stop', 'emu estop', 'emu drop', 'emu stall S', 'emu state'.",
+    )
+    parser.add_argument("--model", default="ur5e", help="UR model (ur3e, ur5e, ur10e, ur16e, ur20, ur30)")
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.0.0.x)")
+    parser.add_argument("--unlock-delay", type=float, default=5.0, help="seconds before a protective stop unlocks")
+    parser.add_argument("--q-home", type=float, nargs=6, default=None, help="initial joints (rad)")
+    parser.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    options = EmulatorOptions(model=args.model, host=args.host, unlock_delay_s=args.unlock_delay)
+    if args.q_home is not None:
+        options.q_home = tuple(args.q_home)
+    emulator = UREmulator(options).start()
+    logging.getLogger("normpos_grasp").setLevel(min(logging.getLogger().level, logging.INFO))
+
+    def _term(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _term)
+    print(f"emulate-ur: {args.model} listening on {args.host} (RTDE 30004, dashboard 29999, script 30003)", flush=True)
+    try:
+        emulator.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emulator.stop()
+        print("emulate-ur: stopped", file=sys.stderr, flush=True)
+    return 0
