@@ -69,7 +69,7 @@ class EmulatorProcess:
             sys.executable,
             "-m",
             "normpos_grasp.cli.main",
-            "-vv",
+            *(["-v"] * self.verbose),
             "emulate-ur",
             "--model",
             self.model,
