@@ -81,6 +81,8 @@ class Template:
     name: unique id. label: class name that segmenters report. mesh: watertight trimesh.Trimesh (metres).
     control_points: name -> (3,) position (metres, object frame). shape: one of SHAPE_CLASSES (drives
     automatic grasp synthesis). mass_kg / material: for physics and payload checks.
+    source: where it was loaded from. obj_id: BOP object id (-1 when none). units: the units the file
+    declared ('mm' or 'm'; the mesh here is always metres). report: the `MeshReport` of its mesh check, if any.
     """
 
     name: str
@@ -93,6 +95,9 @@ class Template:
     mass_kg: float = 0.1
     material: str = ""
     source: str = ""
+    obj_id: int = -1
+    units: str = "m"
+    report: Any = None
 
     @property
     def diameter_m(self) -> float:

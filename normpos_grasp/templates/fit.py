@@ -1,0 +1,566 @@
+"""Pose fitting of CAD templates to measured norm-positions: hypotheses, trimmed ICP, scoring, acceptance.
+
+Pipeline per (norm-position, template):
+1. subsample the measured points (seeded), per-point inlier distances from the depth-noise model;
+2. global hypotheses: PCA/OBB alignment in all 24 axis assignments, FPFH-matched 3-point RANSAC, and the
+   template's control points matched to points detected on the measurement (OBB corners, extremal points);
+3. coarse batched ICP of every hypothesis on a distance grid, keep the best distinct few;
+4. exact trimmed point-to-plane ICP (camera-visible model points only) with an optional size factor;
+5. scoring (inliers, RMSE, visible coverage, free-space violation) and acceptance with a reason; a second,
+   clearly different pose that explains the data about as well makes the fit ambiguous: rejected.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from normpos_grasp.camera.model import Camera
+from normpos_grasp.errors import FitRejected, InputError, TemplateError
+from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.measure.normpos import NormPosition
+from normpos_grasp.templates.control_points import control_point_hypotheses
+from normpos_grasp.templates.features import fpfh, ransac_hypotheses, voxel_downsample
+from normpos_grasp.templates.icp import icp
+from normpos_grasp.templates.model import Template, TemplateFit
+from normpos_grasp.templates.prepared import PreparedTemplate, prepare
+from normpos_grasp.templates.scoring import PoseScore, evaluate
+from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of `fit_template` / `fit_best`.
+
+    Attributes:
+        n_fit_points: measured points used by the exact ICP (subsampled, seeded).
+        n_coarse_points: points used by the coarse stage.
+        n_score_points: points used for the final inlier/RMSE score.
+        inlier_distance_m: smallest inlier distance, metres.
+        noise_per_m2: depth noise RMS per squared range, 1/m (D435: 0.0036; the inlier distance is
+            max(inlier_distance_m, 2.5 * noise_per_m2 * range^2)).
+        coarse_iterations / icp_iterations: ICP iterations of the two stages; the last `exact_iterations`
+            of the fine stage use exact KD-tree correspondences (the others a distance grid);
+            scale_iterations: extra iterations that also fit the size factor.
+        n_refine: distinct coarse hypotheses refined exactly.
+        ransac_iterations: sampled triples for the FPFH RANSAC (0 disables it).
+        use_pca / use_control_points: hypothesis sources.
+        fit_scale: fit a size factor; scale_tolerance: its bound (0.05 = parts up to 5 % off CAD size).
+        min_points: fewer measured points -> rejected ("too few points").
+        min_inlier_ratio, max_rmse_m (added to the median inlier distance), min_coverage (with depth image),
+        min_coverage_no_depth (without), max_free_space_violation: acceptance thresholds.
+        ambiguity_ratio: a distinct pose (ADD-S > ambiguity_add_s * diameter) scoring at least this share of
+            the best makes the fit ambiguous (rejected).
+        seed: RNG seed for subsampling and RANSAC (results are deterministic).
+    """
+
+    n_fit_points: int = 200
+    n_coarse_points: int = 60
+    n_score_points: int = 500
+    inlier_distance_m: float = 0.003
+    noise_per_m2: float = 0.0036
+    coarse_iterations: int = 6
+    icp_iterations: int = 12
+    exact_iterations: int = 4
+    scale_iterations: int = 3
+    n_refine: int = 3
+    ransac_iterations: int = 600
+    use_pca: bool = True
+    use_control_points: bool = True
+    fit_scale: bool = True
+    scale_tolerance: float = 0.05
+    min_points: int = 30
+    min_inlier_ratio: float = 0.75
+    max_rmse_m: float = 0.002
+    min_coverage: float = 0.5
+    min_coverage_no_depth: float = 0.3
+    max_free_space_violation: float = 0.08
+    ambiguity_ratio: float = 0.9
+    ambiguity_add_s: float = 0.1
+    seed: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class FitContext:
+    """Optional sensor context for the free-space and coverage tests.
+
+    camera: the frame's camera; depth_m: (H, W) metric depth (0 = no reading) of the same frame.
+    The norm-position's frame must be 'camera' or the camera must carry `world_from_camera`.
+    """
+
+    camera: Camera
+    depth_m: FloatArray
+
+    def camera_from_frame(self, frame: str) -> FloatArray:
+        if frame == "camera":
+            return np.eye(4)
+        if self.camera.world_from_camera is None:
+            raise InputError(
+                f"norm-position frame is '{frame}' but the camera has no world_from_camera; "
+                "calibrate extrinsics or measure in the camera frame"
+            )
+        return invert_pose(self.camera.world_from_camera)
+
+
+@dataclass(frozen=True, eq=False)
+class _Candidate:
+    object_from_frame: FloatArray
+    scale: float
+    score: PoseScore
+
+
+@dataclass(frozen=True)
+class _Measured:
+    pts_fit: FloatArray
+    nrm_fit: FloatArray
+    thr_fit: FloatArray
+    pts_score: FloatArray
+    nrm_score: FloatArray
+    thr_score: FloatArray
+    tree: cKDTree
+    viewpoint: FloatArray
+    all_pts: FloatArray = field(repr=False)
+    all_nrm: FloatArray = field(repr=False)
+
+
+def fit_template(
+    normpos: NormPosition,
+    template: Template,
+    options: FitOptions | None = None,
+    camera: FitContext | None = None,
+) -> TemplateFit:
+    """Fit `template` to `normpos`; always returns a `TemplateFit` (accepted=False with a reason on failure).
+
+    `camera` (a `FitContext`) enables the occlusion-aware coverage and the free-space test on the depth image.
+    The pose is `frame_from_object` in the norm-position's frame (`fit.frame`).
+    """
+    opts = options or FitOptions()
+    t0 = time.perf_counter()
+    try:
+        meas = _prepare_measurement(normpos, opts)
+    except _TooFew as exc:
+        return _rejected(template, normpos, str(exc), t0)
+    prep = prepare(template)
+    cands = _fit_candidates(prep, template, normpos, meas, opts, camera)
+    if not cands:
+        return _rejected(template, normpos, "no pose hypothesis explained the measured points", t0)
+    return _decide(prep, template, normpos, cands, opts, camera, t0)
+
+
+def fit_template_or_raise(
+    normpos: NormPosition, template: Template, options: FitOptions | None = None, camera: FitContext | None = None
+) -> TemplateFit:
+    """`fit_template`, raising `FitRejected` (carrying the fit) when the fit is not accepted."""
+    fit = fit_template(normpos, template, options, camera)
+    if not fit.accepted:
+        raise FitRejected(f"template '{template.name}' rejected: {fit.reason}", fit)
+    return fit
+
+
+def fit_best(
+    normpos: NormPosition,
+    library: object,
+    options: FitOptions | None = None,
+    camera: FitContext | None = None,
+) -> TemplateFit:
+    """Fit the templates of `library` (a TemplateLibrary or a sequence of Templates) and return the best.
+
+    With a label on the norm-position only templates of that label (or name) are tried; with label ''
+    (a model-free segmenter) every template whose size is compatible competes and the best score wins.
+    A label that no template carries gives a rejected fit. Two different templates accepted with nearly
+    equal scores give a rejected fit ('ambiguous class').
+    """
+    templates = list(library)  # type: ignore[call-overload]
+    if not templates:
+        raise TemplateError("the template library is empty; load templates with load_library(path)")
+    opts = options or FitOptions()
+    t0 = time.perf_counter()
+    if normpos.label:
+        chosen = [t for t in templates if normpos.label in (t.label, t.name)]
+        if not chosen:
+            labels = sorted({t.label for t in templates})
+            return _rejected(
+                templates[0], normpos, f"no template for label '{normpos.label}' (library labels: {labels})", t0
+            )
+    else:
+        chosen = [t for t in templates if _size_compatible(normpos, t, opts)]
+        if not chosen:
+            return _rejected(templates[0], normpos, "no template is compatible with the measured size", t0)
+    fits = [fit_template(normpos, t, opts, camera) for t in chosen]
+    fits.sort(key=lambda f: (f.accepted, f.score), reverse=True)
+    best = fits[0]
+    if len(fits) > 1 and best.accepted and not normpos.label:
+        second = fits[1]
+        if second.accepted and second.score >= opts.ambiguity_ratio * best.score and not _same_shape(best, second):
+            best = replace(
+                best,
+                accepted=False,
+                reason=f"ambiguous class: '{best.template.name}' ({best.score:.3f}) and "
+                f"'{second.template.name}' ({second.score:.3f}) explain the points equally",
+            )
+    alternatives = {f.template.name: round(f.score, 4) for f in fits}
+    return replace(best, time_s=time.perf_counter() - t0, extra={**best.extra, "candidates": alternatives})
+
+
+def fit_best_or_raise(
+    normpos: NormPosition, library: object, options: FitOptions | None = None, camera: FitContext | None = None
+) -> TemplateFit:
+    """`fit_best`, raising `FitRejected` (carrying the fit) when no template is accepted."""
+    fit = fit_best(normpos, library, options, camera)
+    if not fit.accepted:
+        raise FitRejected(f"no template accepted: {fit.reason}", fit)
+    return fit
+
+
+# -- internals -------------------------------------------------------------------------------------
+
+
+class _TooFew(Exception):
+    pass
+
+
+def _prepare_measurement(normpos: NormPosition, opts: FitOptions) -> _Measured:
+    pts = np.asarray(normpos.points, dtype=np.float64).reshape(-1, 3)
+    nrm = np.asarray(normpos.normals, dtype=np.float64).reshape(-1, 3)
+    good = np.all(np.isfinite(pts), axis=1)
+    if nrm.shape == pts.shape:
+        good &= np.all(np.isfinite(nrm), axis=1)
+    pts = pts[good]
+    if len(pts) < opts.min_points:
+        raise _TooFew(f"too few points: {len(pts)} valid measured points, need at least {opts.min_points}")
+    vp = np.asarray(normpos.viewpoint, dtype=np.float64).reshape(3)
+    if nrm.shape[0] == good.shape[0]:
+        nrm = nrm[good]
+    nlen = np.linalg.norm(nrm, axis=1) if nrm.shape == pts.shape else np.zeros(len(pts))
+    if nrm.shape != pts.shape or np.mean(np.abs(nlen - 1.0) < 1e-3) < 0.9:
+        nrm = estimate_normals(pts, vp)
+    else:
+        nrm = nrm / np.where(nlen < 1e-9, 1.0, nlen)[:, None]
+    rng = np.random.default_rng(opts.seed)
+    rngs = np.linalg.norm(pts - vp, axis=1)
+    thr_all = np.maximum(opts.inlier_distance_m, 2.5 * opts.noise_per_m2 * rngs**2)
+    fi = _subsample(len(pts), opts.n_fit_points, rng)
+    si = _subsample(len(pts), opts.n_score_points, rng)
+    return _Measured(
+        pts_fit=pts[fi],
+        nrm_fit=nrm[fi],
+        thr_fit=thr_all[fi],
+        pts_score=pts[si],
+        nrm_score=nrm[si],
+        thr_score=thr_all[si],
+        tree=cKDTree(pts),
+        viewpoint=vp,
+        all_pts=pts,
+        all_nrm=nrm,
+    )
+
+
+def estimate_normals(points: FloatArray, viewpoint: FloatArray, k: int = 12) -> FloatArray:
+    """(N, 3) unit normals of (N, 3) points from their k nearest neighbours, oriented towards `viewpoint`."""
+    n = len(points)
+    kk = min(k, n)
+    _, idx = cKDTree(points).query(points, k=kk)
+    nb = points[np.asarray(idx).reshape(n, kk)]
+    cen = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", cen, cen)
+    _, vec = np.linalg.eigh(cov)
+    nrm = vec[:, :, 0]
+    flip = np.einsum("ij,ij->i", nrm, viewpoint - points) < 0
+    nrm[flip] *= -1
+    return nrm
+
+
+def _subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
+    if n <= k:
+        return np.arange(n)
+    return np.sort(rng.choice(n, size=k, replace=False))
+
+
+def _fit_candidates(
+    prep: PreparedTemplate,
+    template: Template,
+    normpos: NormPosition,
+    meas: _Measured,
+    opts: FitOptions,
+    ctx: FitContext | None,
+) -> list[_Candidate]:
+    rng = np.random.default_rng(opts.seed + 1)
+    hyps = []
+    if opts.use_pca:
+        hyps.append(_pca_hypotheses(prep, meas))
+    if opts.ransac_iterations > 0:
+        hyps.append(_ransac(prep, meas, opts, rng))
+    if opts.use_control_points and template.control_points:
+        hyps.append(control_point_hypotheses(template, meas.all_pts, meas.viewpoint, prep.diameter))
+    poses = np.concatenate([h for h in hyps if len(h)], axis=0) if any(len(h) for h in hyps) else np.zeros((0, 4, 4))
+    if len(poses) == 0:
+        return []
+    ci = _subsample(len(meas.pts_fit), opts.n_coarse_points, rng)
+    poses, scales, frac = icp(
+        prep,
+        poses,
+        np.ones(len(poses)),
+        meas.pts_fit[ci],
+        meas.nrm_fit[ci],
+        meas.thr_fit[ci],
+        iterations=opts.coarse_iterations,
+        exact=False,
+        fit_scale=False,
+        scale_tolerance=opts.scale_tolerance,
+        max_corr_start=0.25 * prep.diameter,
+    )
+    keep = _distinct(poses, frac, prep, opts.n_refine)
+    poses, scales, _ = icp(
+        prep,
+        poses[keep],
+        scales[keep],
+        meas.pts_fit,
+        meas.nrm_fit,
+        meas.thr_fit,
+        iterations=opts.icp_iterations,
+        exact=False,
+        exact_last=opts.exact_iterations,
+        fit_scale=False,
+        scale_tolerance=opts.scale_tolerance,
+        max_corr_start=0.08 * prep.diameter,
+    )
+    if opts.fit_scale:
+        poses, scales, _ = icp(
+            prep,
+            poses,
+            scales,
+            meas.pts_fit,
+            meas.nrm_fit,
+            meas.thr_fit,
+            iterations=opts.scale_iterations,
+            exact=True,
+            fit_scale=True,
+            scale_tolerance=opts.scale_tolerance,
+            max_corr_start=3.0 * float(np.median(meas.thr_fit)),
+        )
+    cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
+    out = []
+    for pose, s in zip(poses, scales, strict=True):
+        sc = evaluate(
+            prep,
+            pose,
+            float(s),
+            meas.pts_score,
+            meas.nrm_score,
+            meas.thr_score,
+            meas.tree,
+            meas.viewpoint,
+            camera=ctx.camera if ctx is not None else None,
+            depth_m=ctx.depth_m if ctx is not None else None,
+            camera_from_frame=cff,
+        )
+        out.append(_Candidate(pose, float(s), sc))
+    out.sort(key=lambda c: c.score.score, reverse=True)
+    return out
+
+
+def _pca_hypotheses(prep: PreparedTemplate, meas: _Measured) -> FloatArray:
+    pts = meas.pts_fit
+    c = pts.mean(axis=0)
+    cov = np.cov((pts - c).T)
+    w, v = np.linalg.eigh(cov)
+    am = v[:, np.argsort(w)[::-1]]
+    if np.linalg.det(am) < 0:
+        am[:, 2] *= -1
+    out = []
+    view = c - meas.viewpoint
+    view = view / max(float(np.linalg.norm(view)), 1e-12)
+    for d in _SIGNED_PERMS:
+        rot = prep.axes @ d @ am.T  # object_from_frame rotation
+        v_obj = rot @ view
+        vis = prep.normals @ v_obj < -0.1
+        cv = prep.samples[vis].mean(axis=0) if np.any(vis) else prep.centroid
+        pose = np.eye(4)
+        pose[:3, :3] = rot
+        pose[:3, 3] = cv - rot @ c
+        out.append(pose)
+    return np.array(out)
+
+
+def _signed_perms() -> list[FloatArray]:
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for sx in (1, -1):
+            for sy in (1, -1):
+                for sz in (1, -1):
+                    m = np.zeros((3, 3))
+                    m[0, perm[0]] = sx
+                    m[1, perm[1]] = sy
+                    m[2, perm[2]] = sz
+                    if np.linalg.det(m) > 0:
+                        out.append(m)
+    return out
+
+
+_SIGNED_PERMS = _signed_perms()
+
+
+def _ransac(prep: PreparedTemplate, meas: _Measured, opts: FitOptions, rng: np.random.Generator) -> FloatArray:
+    keep = voxel_downsample(meas.all_pts, prep.voxel)
+    if len(keep) < 6:
+        return np.zeros((0, 4, 4))
+    mp = meas.all_pts[keep]
+    desc = fpfh(mp, meas.all_nrm[keep], prep.voxel * 2.5)
+    tol = max(3.0 * float(np.median(meas.thr_fit)), 0.06 * prep.diameter)
+    poses = ransac_hypotheses(
+        mp,
+        desc,
+        prep.samples[prep.desc_idx],
+        prep.desc_tree,
+        n_iter=opts.ransac_iterations,
+        tol=tol,
+        min_edge=0.15 * prep.diameter,
+        rng=rng,
+    )
+    if len(poses) == 0:
+        return poses
+    # quick score on the distance grid: share of points near the surface
+    sub = mp[_subsample(len(mp), 60, rng)]
+    y = np.einsum("hij,pj->hpi", poses[:, :3, :3], sub) + poses[:, None, :3, 3]
+    idx, inside = prep.grid_lookup(y.reshape(-1, 3))
+    d = np.linalg.norm(y.reshape(-1, 3) - prep.samples[idx], axis=1)
+    ok = ((d < 2.0 * tol) & (inside > 0)).reshape(len(poses), -1).mean(axis=1)
+    top = np.argsort(-ok)[:16]
+    return poses[top]
+
+
+def _distinct(poses: FloatArray, frac: FloatArray, prep: PreparedTemplate, n: int) -> list[int]:
+    order = np.argsort(-frac)
+    chosen: list[int] = []
+    for i in order:
+        dup = False
+        for j in chosen:
+            dt = np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3])
+            cosang = (np.trace(poses[i, :3, :3] @ poses[j, :3, :3].T) - 1) / 2
+            if dt < 0.05 * prep.diameter and cosang > np.cos(np.deg2rad(8)):
+                dup = True
+                break
+        if not dup:
+            chosen.append(int(i))
+        if len(chosen) >= n:
+            break
+    return chosen
+
+
+def _add_s(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:
+    """Symmetry-aware distance between two poses: mean closest-point distance of the posed samples, metres."""
+    sub = prep.samples[:: max(1, len(prep.samples) // 300)]
+    pa = (sub * a.scale - a.object_from_frame[:3, 3]) @ a.object_from_frame[:3, :3]
+    pb = (sub * b.scale - b.object_from_frame[:3, 3]) @ b.object_from_frame[:3, :3]
+    d, _ = cKDTree(pb).query(pa)
+    return float(np.mean(d))
+
+
+def _decide(
+    prep: PreparedTemplate,
+    template: Template,
+    normpos: NormPosition,
+    cands: list[_Candidate],
+    opts: FitOptions,
+    ctx: FitContext | None,
+    t0: float,
+) -> TemplateFit:
+    best = cands[0]
+    s = best.score
+    tol = float(
+        np.median(
+            np.maximum(
+                opts.inlier_distance_m,
+                2.5
+                * opts.noise_per_m2
+                * np.linalg.norm(normpos.points[:: max(1, len(normpos.points) // 200)] - normpos.viewpoint, axis=1)
+                ** 2,
+            )
+        )
+    )
+    reasons = []
+    if s.inlier_ratio < opts.min_inlier_ratio:
+        reasons.append(f"inlier ratio {s.inlier_ratio:.2f} < {opts.min_inlier_ratio}")
+    if s.rmse_m > tol + opts.max_rmse_m:
+        reasons.append(f"rmse {s.rmse_m * 1000:.2f} mm > {(tol + opts.max_rmse_m) * 1000:.2f} mm")
+    min_cov = opts.min_coverage if ctx is not None else opts.min_coverage_no_depth
+    if s.coverage < min_cov:
+        reasons.append(f"visible-surface coverage {s.coverage:.2f} < {min_cov}")
+    if s.free_space_violation > opts.max_free_space_violation:
+        reasons.append(
+            f"free-space violation {s.free_space_violation:.2f} > {opts.max_free_space_violation} "
+            "(template surface in front of measured depth)"
+        )
+    rival = None
+    for other in cands[1:]:
+        if other.score.score >= opts.ambiguity_ratio * s.score and s.score > 0:
+            dist = _add_s(prep, best, other)
+            if dist > opts.ambiguity_add_s * prep.diameter:
+                rival = (other, dist)
+                break
+    if rival is not None:
+        reasons.append(
+            f"ambiguous: a pose {rival[1] * 1000:.1f} mm (ADD-S) away scores {rival[0].score.score:.3f} "
+            f"vs {s.score:.3f}"
+        )
+    world_from_object = invert_pose(best.object_from_frame)
+    return TemplateFit(
+        template=template,
+        world_from_object=world_from_object,
+        score=s.score if not reasons else min(s.score, 0.5 * s.score),
+        rmse_m=s.rmse_m,
+        inlier_ratio=s.inlier_ratio,
+        coverage=s.coverage,
+        free_space_violation=s.free_space_violation,
+        accepted=not reasons,
+        reason="; ".join(reasons),
+        scale=best.scale,
+        frame=normpos.frame,
+        instance_id=normpos.instance_id,
+        time_s=time.perf_counter() - t0,
+        extra={
+            "n_points": normpos.n_points,
+            "n_candidates": len(cands),
+            "candidate_scores": [round(c.score.score, 4) for c in cands],
+            "occluded_share": s.occluded_share,
+            "scale_note": "" if abs(best.scale - 1.0) < 0.005 else f"part is {100 * (best.scale - 1):+.1f} % vs CAD",
+        },
+    )
+
+
+def _rejected(template: Template, normpos: NormPosition, reason: str, t0: float) -> TemplateFit:
+    pose = np.eye(4)
+    if normpos.n_points:
+        pose[:3, 3] = np.nan_to_num(np.asarray(normpos.centroid, dtype=np.float64))
+    return TemplateFit(
+        template=template,
+        world_from_object=pose,
+        score=0.0,
+        rmse_m=float("inf"),
+        inlier_ratio=0.0,
+        coverage=0.0,
+        free_space_violation=0.0,
+        accepted=False,
+        reason=reason,
+        frame=normpos.frame,
+        instance_id=normpos.instance_id,
+        time_s=time.perf_counter() - t0,
+    )
+
+
+def _size_compatible(normpos: NormPosition, template: Template, opts: FitOptions) -> bool:
+    prep = prepare(template)
+    ext = float(np.max(np.asarray(normpos.obb.extents, dtype=np.float64)))
+    return ext <= prep.diameter * (1.0 + opts.scale_tolerance) + 0.01
+
+
+def _same_shape(a: TemplateFit, b: TemplateFit) -> bool:
+    """Two templates with (nearly) the same geometry are not a class ambiguity."""
+    pa, pb = prepare(a.template), prepare(b.template)
+    return bool(abs(pa.diameter - pb.diameter) < 0.02 * pa.diameter and a.template.label == b.template.label)

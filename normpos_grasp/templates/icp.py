@@ -1,0 +1,155 @@
+"""Batched trimmed point-to-plane ICP of measured points against a template surface (object frame).
+
+Poses are `object_from_frame` (T) with a size factor s: a measured point q corresponds to the CAD point
+m = T q / s (the object is s times its CAD size). Only model points whose outward normal agrees with the
+measured normal (which faces the camera) are matched, so back faces and hidden sides never attract points.
+All hypotheses advance together: one KD-tree / grid query and one batch of 6x6 (7x7) solves per iteration.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from normpos_grasp.templates.prepared import PreparedTemplate
+from normpos_grasp.typing import FloatArray
+
+NORMAL_COS = 0.35
+
+
+def correspond(
+    prep: PreparedTemplate,
+    y: FloatArray,
+    ny: FloatArray,
+    *,
+    exact: bool,
+    k: int = 4,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Closest normal-compatible model sample for object-frame points.
+
+    y, ny: (P, 3) points and their (measured) normals in the object frame.
+    Returns residual (P,) point-to-plane distance, dist (P,) point-to-point distance (inf when none),
+    model normal (P, 3).
+    """
+    if exact:
+        dist, idx = prep.tree.query(y, k=k)
+        nm = prep.normals[idx]  # (P, k, 3)
+        ok = np.einsum("pkd,pd->pk", nm, ny) > NORMAL_COS
+        first = np.argmax(ok, axis=1)
+        has = ok[np.arange(len(y)), first]
+        sel = idx[np.arange(len(y)), first]
+        d = np.where(has, dist[np.arange(len(y)), first], np.inf)
+    else:
+        sel, inside = prep.grid_lookup(y)
+        has = (inside > 0) & (np.einsum("pd,pd->p", prep.normals[sel], ny) > NORMAL_COS)
+        d = np.where(has, np.linalg.norm(y - prep.samples[sel], axis=-1), np.inf)
+    n = prep.normals[sel]
+    r = np.einsum("pd,pd->p", y - prep.samples[sel], n)
+    return r, d, n
+
+
+def icp(
+    prep: PreparedTemplate,
+    poses: FloatArray,
+    scales: FloatArray,
+    pts: FloatArray,
+    nrm: FloatArray,
+    thr: FloatArray,
+    *,
+    iterations: int,
+    exact: bool,
+    fit_scale: bool,
+    scale_tolerance: float,
+    max_corr_start: float,
+    trim: float = 0.85,
+    exact_last: int = 0,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Refine (H, 4, 4) `object_from_frame` poses and (H,) scales on (P, 3) points/normals.
+
+    thr: (P,) per-point inlier distance (metres, from the depth noise model). The correspondence gate
+    shrinks geometrically from `max_corr_start` to 3 thr; correspondences come from the distance grid
+    except with `exact` or in the last `exact_last` iterations (KD-tree, normal-compatible); residuals
+    above the `trim` quantile are dropped and the rest Huber-weighted.
+    Returns poses, scales and the (H,) inlier fraction at the last iteration.
+    """
+    poses = poses.copy()
+    scales = scales.copy()
+    h = len(poses)
+    p = len(pts)
+    c = prep.centroid
+    gate_end = 3.0 * float(np.median(thr))
+    ratio = (gate_end / max(max_corr_start, gate_end)) ** (1.0 / max(iterations - 1, 1))
+    gate = max(max_corr_start, gate_end)
+    frac = np.zeros(h)
+    dof = 7 if fit_scale else 6
+    # a prior keeping the scale near 1 unless the data insist (equivalent to a few points at 1 diameter)
+    prior = 4.0 * prep.diameter**2
+    for it in range(iterations):
+        rot = poses[:, :3, :3]
+        y = (np.einsum("hij,pj->hpi", rot, pts) + poses[:, None, :3, 3]) / scales[:, None, None]
+        ny = np.einsum("hij,pj->hpi", rot, nrm)
+        use_exact = exact or it >= iterations - exact_last
+        r, d, n = correspond(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=use_exact)
+        r = r.reshape(h, p)
+        d = d.reshape(h, p)
+        n = n.reshape(h, p, 3)
+        valid = d < gate
+        absr = np.abs(r)
+        frac = (valid & (absr < thr[None])).mean(axis=1)
+        # trimming per hypothesis
+        big = np.where(valid, absr, np.inf)
+        cnt = valid.sum(1)
+        kth = np.clip((trim * cnt).astype(int) - 1, 0, p - 1)
+        srt = np.sort(big, axis=1)
+        cut = srt[np.arange(h), kth]
+        valid &= absr <= np.maximum(cut, thr.min())[:, None]
+        hub = np.where(absr > thr[None], thr[None] / np.maximum(absr, 1e-12), 1.0)
+        w = valid * hub
+        jac = np.empty((h, p, dof))
+        jac[..., :3] = np.cross(y, n)
+        jac[..., 3:6] = n
+        if fit_scale:
+            jac[..., 6] = -np.einsum("hpd,hpd->hp", n, y - c)
+        jw = jac * w[..., None]
+        a = jw.transpose(0, 2, 1) @ jac
+        b = -np.einsum("hpi,hp->hi", jw, r)
+        a += np.eye(dof)[None] * 1e-9
+        if fit_scale:
+            a[:, 6, 6] += prior
+            b[:, 6] -= prior * (scales - 1.0)
+        enough = cnt >= 6
+        a[~enough] = np.eye(dof)
+        b[~enough] = 0.0
+        delta = np.linalg.solve(a, b[..., None])[..., 0]
+        delta[~enough] = 0.0
+        rd = batched_rodrigues(delta[:, :3])
+        sig = delta[:, 6] if fit_scale else np.zeros(h)
+        s_new = np.clip(scales / (1.0 - np.clip(sig, -0.5, 0.5)), 1.0 - scale_tolerance, 1.0 + scale_tolerance)
+        new = np.tile(np.eye(4), (h, 1, 1))
+        new[:, :3, :3] = rd @ poses[:, :3, :3]
+        new[:, :3, 3] = (
+            np.einsum("hij,hj->hi", rd, poses[:, :3, 3])
+            + scales[:, None] * delta[:, 3:6]
+            + (s_new - scales)[:, None] * c[None]
+        )
+        poses = new
+        scales = s_new
+        if it < iterations - 1:
+            gate = max(gate * ratio, gate_end)
+    return poses, scales, frac
+
+
+def batched_rodrigues(rotvec: FloatArray) -> FloatArray:
+    """(H, 3, 3) rotations from (H, 3) rotation vectors (radians)."""
+    theta = np.linalg.norm(rotvec, axis=1)
+    small = theta < 1e-12
+    axis = rotvec / np.where(small, 1.0, theta)[:, None]
+    kx = np.zeros((len(rotvec), 3, 3))
+    kx[:, 0, 1] = -axis[:, 2]
+    kx[:, 0, 2] = axis[:, 1]
+    kx[:, 1, 0] = axis[:, 2]
+    kx[:, 1, 2] = -axis[:, 0]
+    kx[:, 2, 0] = -axis[:, 1]
+    kx[:, 2, 1] = axis[:, 0]
+    st = np.sin(theta)[:, None, None]
+    ct = (1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3)[None] + st * kx + ct * (kx @ kx)

@@ -1,0 +1,418 @@
+"""Template libraries on disk: a folder per template (`template.yaml` + mesh) or a BOP models folder.
+
+template.yaml (lengths in the declared `units`, mm or m; angles in degrees):
+
+    name: bracket_l            # unique id (defaults to the folder name)
+    label: bracket             # class label segmenters report (defaults to name)
+    mesh: mesh.stl             # STL/OBJ/PLY/GLB, relative to the folder
+    units: mm                  # mm | m
+    shape: bracket             # box|cylinder|sphere|plate|bracket|ring|irregular
+    mass_kg: 0.12
+    material: aluminium
+    symmetry:
+      continuous: [{axis: [0, 0, 1], point: [0, 0, 0]}]
+      discrete: [{axis: [1, 0, 0], angle_deg: 180, point: [0, 0, 0]}]   # or {matrix: 4x4 rows}
+    control_points: {corner_a: [0, 0, 0], hole_1: [20, 10, 5]}
+    grasps:
+      - {id: top, scheme: parallel, position: [0, 0, 30], rotvec_deg: [180, 0, 0], opening: 40, priority: 1}
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from normpos_grasp.errors import InputError, MeshError, TemplateError
+from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec, rotation_to_rotvec
+from normpos_grasp.templates.mesh_check import MeshReport, check_mesh
+from normpos_grasp.templates.model import SHAPE_CLASSES, GraspAnnotation, Symmetry, Template
+from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+UNITS = {"mm": 1e-3, "m": 1.0}
+TEMPLATE_FILE = "template.yaml"
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".glb", ".gltf", ".off")
+
+
+@dataclass(frozen=True, eq=False)
+class TemplateLibrary:
+    """An ordered set of templates with lookups by name, label and BOP obj_id.
+
+    templates: the templates. reports: mesh check report per template name. root: where it was loaded from.
+    """
+
+    templates: tuple[Template, ...]
+    reports: dict[str, MeshReport] = field(default_factory=dict)
+    root: str = ""
+
+    def __post_init__(self) -> None:
+        names = [t.name for t in self.templates]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise TemplateError(f"template names must be unique; duplicated: {dup}")
+
+    def __len__(self) -> int:
+        return len(self.templates)
+
+    def __iter__(self) -> Iterator[Template]:
+        return iter(self.templates)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.templates)
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        return tuple(sorted({t.label for t in self.templates}))
+
+    def get(self, name: str) -> Template:
+        """The template called `name`; TemplateError listing the known names otherwise."""
+        for t in self.templates:
+            if t.name == name:
+                return t
+        raise TemplateError(f"no template named '{name}' in the library; known: {list(self.names)}")
+
+    def by_label(self, label: str) -> tuple[Template, ...]:
+        """Templates whose label (or name) equals `label` (may be empty)."""
+        return tuple(t for t in self.templates if label in (t.label, t.name))
+
+    def by_obj_id(self, obj_id: int) -> Template:
+        """The template loaded from BOP object `obj_id`."""
+        for t in self.templates:
+            if t.obj_id == int(obj_id):
+                return t
+        raise TemplateError(f"no template with BOP obj_id {obj_id}; known: {[t.obj_id for t in self.templates]}")
+
+
+# -- loading ---------------------------------------------------------------------------------------
+
+
+def load_library(path: str | Path, *, repair: bool = True) -> TemplateLibrary:
+    """Load a template library: a folder of template folders, one template folder, or a BOP models folder.
+
+    Raises:
+        TemplateError: the path does not exist or holds no template (an empty library is an error).
+    """
+    root = Path(path)
+    if not root.exists():
+        raise TemplateError(f"template library '{root}' does not exist")
+    if root.is_file() and root.name == "models_info.json":
+        root = root.parent
+    if (root / "models_info.json").is_file():
+        templates = load_bop_models(root, repair=repair)
+    elif (root / TEMPLATE_FILE).is_file():
+        templates = [load_template(root, repair=repair)]
+    else:
+        folders = sorted(p for p in root.iterdir() if (p / TEMPLATE_FILE).is_file())
+        templates = [load_template(p, repair=repair) for p in folders]
+    if not templates:
+        raise TemplateError(
+            f"no templates in '{root}': expected sub-folders with {TEMPLATE_FILE} or a BOP models_info.json"
+        )
+    reports = {t.name: t.report for t in templates if t.report is not None}
+    return TemplateLibrary(tuple(templates), reports, str(root))
+
+
+def load_template(folder: str | Path, *, repair: bool = True) -> Template:
+    """Load one template folder (`template.yaml` + mesh); lengths converted to metres."""
+    folder = Path(folder)
+    spec_path = folder / TEMPLATE_FILE
+    if not spec_path.is_file():
+        raise TemplateError(f"'{folder}' has no {TEMPLATE_FILE}")
+    try:
+        spec = yaml.safe_load(spec_path.read_text())
+    except yaml.YAMLError as exc:
+        raise TemplateError(f"{spec_path}: invalid YAML: {exc}") from exc
+    if not isinstance(spec, dict):
+        raise TemplateError(f"{spec_path}: expected a mapping at the top level, got {type(spec).__name__}")
+    where = str(spec_path)
+    name = str(spec.get("name", folder.name))
+    units = str(spec.get("units", "m"))
+    if units not in UNITS:
+        raise TemplateError(f"{where}: units must be one of {sorted(UNITS)}, got '{units}'")
+    scale = UNITS[units]
+    mesh_name = spec.get("mesh")
+    if mesh_name is None:
+        found = sorted(p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+        if len(found) != 1:
+            raise TemplateError(f"{where}: give 'mesh:' (found {len(found)} mesh files in the folder)")
+        mesh_path = found[0]
+    else:
+        mesh_path = folder / str(mesh_name)
+    raw = _load_mesh(mesh_path, where)
+    _check_units(raw.extents, units, where)
+    raw.apply_scale(scale)
+    mesh, report = check_mesh(raw, name, repair=repair)
+    shape = str(spec.get("shape", "irregular"))
+    if shape not in SHAPE_CLASSES:
+        raise TemplateError(f"{where}: shape must be one of {SHAPE_CLASSES}, got '{shape}'")
+    control = {
+        str(k): _vec(v, f"{where}: control_points.{k}") * scale for k, v in (spec.get("control_points") or {}).items()
+    }
+    symmetry = _parse_symmetry(spec.get("symmetry") or {}, scale, where)
+    grasps = tuple(_parse_grasp(g, scale, f"{where}: grasps[{i}]") for i, g in enumerate(spec.get("grasps") or []))
+    mass = float(spec.get("mass_kg", 0.1))
+    if not mass > 0:
+        raise TemplateError(f"{where}: mass_kg must be positive, got {mass}")
+    return Template(
+        name=name,
+        label=str(spec.get("label", name)),
+        mesh=mesh,
+        control_points=control,
+        symmetry=symmetry,
+        grasps=grasps,
+        shape=shape,
+        mass_kg=mass,
+        material=str(spec.get("material", "")),
+        source=str(folder),
+        obj_id=int(spec.get("obj_id", -1)),
+        units=units,
+        report=report,
+    )
+
+
+def load_bop_models(folder: str | Path, *, repair: bool = True) -> list[Template]:
+    """Templates from a BOP models folder (`models_info.json` + `obj_XXXXXX.ply`, millimetres)."""
+    folder = Path(folder)
+    try:
+        from normpos_grasp.io.bop import read_models  # another stage's reader, when present
+
+        models = read_models(folder)
+        items = [
+            (
+                int(m.obj_id),
+                Path(m.mesh_path),
+                [np.asarray(t, dtype=np.float64) for t in np.asarray(m.symmetries_discrete).reshape(-1, 4, 4)],
+                [
+                    (np.asarray(a, dtype=np.float64), np.asarray(o, dtype=np.float64))
+                    for a, o in m.symmetries_continuous
+                ],
+            )
+            for m in models.values()
+        ]
+    except ImportError:
+        items = _read_bop_info(folder)
+    out = []
+    for obj_id, mesh_path, disc, cont in items:
+        name = f"obj_{obj_id:06d}"
+        raw = _load_mesh(mesh_path, str(folder / "models_info.json"))
+        _check_units(raw.extents, "mm", str(mesh_path))
+        raw.apply_scale(1e-3)
+        mesh, report = check_mesh(raw, name, repair=repair)
+        sym = Symmetry(
+            continuous=tuple((a / np.linalg.norm(a), o) for a, o in cont),
+            discrete=tuple(t for t in disc if not np.allclose(t, np.eye(4), atol=1e-6)),
+        )
+        out.append(
+            Template(
+                name=name,
+                label=name,
+                mesh=mesh,
+                symmetry=sym,
+                shape="irregular",
+                source=str(mesh_path),
+                obj_id=obj_id,
+                units="mm",
+                report=report,
+            )
+        )
+    return out
+
+
+def _read_bop_info(folder: Path) -> list[tuple[int, Path, list[FloatArray], list[tuple[FloatArray, FloatArray]]]]:
+    info_path = folder / "models_info.json"
+    try:
+        info = json.loads(info_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TemplateError(f"{info_path}: cannot read BOP models info: {exc}") from exc
+    items = []
+    for key, entry in sorted(info.items(), key=lambda kv: int(kv[0])):
+        obj_id = int(key)
+        disc = []
+        for flat in entry.get("symmetries_discrete", []):
+            t = np.asarray(flat, dtype=np.float64).reshape(4, 4)
+            t[:3, 3] *= 1e-3
+            disc.append(t)
+        cont = [
+            (np.asarray(c["axis"], dtype=np.float64), np.asarray(c["offset"], dtype=np.float64) * 1e-3)
+            for c in entry.get("symmetries_continuous", [])
+        ]
+        items.append((obj_id, folder / f"obj_{obj_id:06d}.ply", disc, cont))
+    return items
+
+
+def _load_mesh(path: Path, where: str) -> Any:
+    import trimesh
+
+    if not path.is_file():
+        raise TemplateError(f"{where}: mesh file '{path}' not found")
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=True)
+    except (ValueError, OSError, KeyError, IndexError) as exc:
+        raise MeshError(f"{where}: cannot read mesh '{path}': {exc}") from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise MeshError(f"{where}: '{path}' holds no triangle mesh")
+    return loaded
+
+
+def _check_units(extents: Any, units: str, where: str) -> None:
+    size = float(np.max(extents))
+    if units == "mm" and size < 2.0:
+        logger.warning(
+            "%s: mesh is %.4g units across but units are mm (a %.4g mm part?): is it in metres?", where, size, size
+        )
+    if units == "m" and size > 2.0:
+        logger.warning(
+            "%s: mesh is %.4g units across but units are m (%.4g m): is it in millimetres?", where, size, size
+        )
+
+
+def _vec(value: Any, where: str, n: int = 3) -> FloatArray:
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise TemplateError(f"{where}: expected {n} numbers, got {value!r}") from exc
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise TemplateError(f"{where}: expected {n} finite numbers, got {value!r}")
+    return arr
+
+
+def _parse_symmetry(spec: dict[str, Any], scale: float, where: str) -> Symmetry:
+    cont = []
+    for i, c in enumerate(spec.get("continuous") or []):
+        axis = _vec(c.get("axis"), f"{where}: symmetry.continuous[{i}].axis")
+        if np.linalg.norm(axis) < 1e-9:
+            raise TemplateError(f"{where}: symmetry.continuous[{i}].axis must be non-zero")
+        point = _vec(c.get("point", [0, 0, 0]), f"{where}: symmetry.continuous[{i}].point") * scale
+        cont.append((axis / np.linalg.norm(axis), point))
+    disc = []
+    for i, d in enumerate(spec.get("discrete") or []):
+        if "matrix" in d:
+            t = np.asarray(d["matrix"], dtype=np.float64)
+            if t.shape != (4, 4):
+                raise TemplateError(f"{where}: symmetry.discrete[{i}].matrix must be 4x4")
+            t = t.copy()
+            t[:3, 3] *= scale
+        else:
+            axis = _vec(d.get("axis"), f"{where}: symmetry.discrete[{i}].axis")
+            angle = np.deg2rad(float(d.get("angle_deg", 180.0)))
+            point = _vec(d.get("point", [0, 0, 0]), f"{where}: symmetry.discrete[{i}].point") * scale
+            rot = rotation_from_rotvec(axis / np.linalg.norm(axis) * angle)
+            t = make_pose(rot, point - rot @ point)
+        rot = t[:3, :3]
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
+            raise TemplateError(f"{where}: symmetry.discrete[{i}] is not a proper rotation")
+        disc.append(t)
+    return Symmetry(continuous=tuple(cont), discrete=tuple(disc))
+
+
+def _parse_grasp(g: dict[str, Any], scale: float, where: str) -> GraspAnnotation:
+    if not isinstance(g, dict) or "id" not in g:
+        raise TemplateError(f"{where}: a grasp needs at least 'id' and 'scheme'")
+    scheme = str(g.get("scheme", "parallel"))
+    if scheme not in ("parallel", "suction"):
+        raise TemplateError(f"{where}: scheme must be 'parallel' or 'suction', got '{scheme}'")
+    if "matrix" in g:
+        pose = np.asarray(g["matrix"], dtype=np.float64).reshape(4, 4).copy()
+        pose[:3, 3] *= scale
+    else:
+        pos = _vec(g.get("position", [0, 0, 0]), f"{where}.position") * scale
+        rot = rotation_from_rotvec(np.deg2rad(_vec(g.get("rotvec_deg", [0, 0, 0]), f"{where}.rotvec_deg")))
+        pose = make_pose(rot, pos)
+    free = g.get("free_axis")
+    return GraspAnnotation(
+        id=str(g["id"]),
+        scheme=scheme,
+        object_from_tcp=pose,
+        opening_m=float(g.get("opening", 0.0)) * scale,
+        priority=float(g.get("priority", 0.0)),
+        approach_m=float(g.get("approach", 0.08 / scale)) * scale,
+        retreat_m=float(g.get("retreat", 0.1 / scale)) * scale,
+        free_axis=None if free is None else _vec(free, f"{where}.free_axis"),
+        tilt_cone_rad=float(np.deg2rad(float(g.get("tilt_cone_deg", 0.0)))),
+    )
+
+
+# -- saving ----------------------------------------------------------------------------------------
+
+
+def save_template(template: Template, folder: str | Path, *, units: str = "mm", mesh_format: str = "stl") -> Path:
+    """Write `template` as a folder (`template.yaml` + `mesh.<format>`) that `load_template` reads back.
+
+    Returns the path of the written template.yaml.
+    """
+    if units not in UNITS:
+        raise InputError(f"units must be one of {sorted(UNITS)}, got '{units}'")
+    if mesh_format not in ("stl", "ply", "obj"):
+        raise InputError(f"mesh_format must be stl, ply or obj, got '{mesh_format}'")
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    inv = 1.0 / UNITS[units]
+    mesh = template.mesh.copy()
+    mesh.apply_scale(inv)
+    mesh_file = f"mesh.{mesh_format}"
+    mesh.export(str(out / mesh_file))
+
+    def r(v: Any) -> list[float]:
+        return [float(round(x, 9)) for x in np.asarray(v, dtype=np.float64).reshape(-1)]
+
+    spec: dict[str, Any] = {
+        "name": template.name,
+        "label": template.label,
+        "mesh": mesh_file,
+        "units": units,
+        "shape": template.shape,
+        "mass_kg": float(template.mass_kg),
+        "material": template.material,
+    }
+    if template.obj_id >= 0:
+        spec["obj_id"] = int(template.obj_id)
+    sym: dict[str, Any] = {}
+    if template.symmetry.continuous:
+        sym["continuous"] = [{"axis": r(a), "point": r(np.asarray(p) * inv)} for a, p in template.symmetry.continuous]
+    if template.symmetry.discrete:
+        mats = []
+        for t in template.symmetry.discrete:
+            m = np.asarray(t, dtype=np.float64).copy()
+            m[:3, 3] *= inv
+            mats.append({"matrix": [r(row) for row in m]})
+        sym["discrete"] = mats
+    if sym:
+        spec["symmetry"] = sym
+    if template.control_points:
+        spec["control_points"] = {k: r(np.asarray(v) * inv) for k, v in template.control_points.items()}
+    if template.grasps:
+        spec["grasps"] = [
+            {
+                "id": g.id,
+                "scheme": g.scheme,
+                "position": r(g.object_from_tcp[:3, 3] * inv),
+                "rotvec_deg": r(np.rad2deg(rotation_to_rotvec(g.object_from_tcp[:3, :3]))),
+                "opening": float(g.opening_m * inv),
+                "priority": float(g.priority),
+                "approach": float(g.approach_m * inv),
+                "retreat": float(g.retreat_m * inv),
+                "tilt_cone_deg": float(np.rad2deg(g.tilt_cone_rad)),
+                **({} if g.free_axis is None else {"free_axis": r(g.free_axis)}),
+            }
+            for g in template.grasps
+        ]
+    path = out / TEMPLATE_FILE
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+def save_library(library: TemplateLibrary | list[Template], folder: str | Path, *, units: str = "mm") -> Path:
+    """Write every template into `folder/<name>/`; returns `folder`."""
+    out = Path(folder)
+    for t in library:
+        save_template(t, out / t.name, units=units)
+    return out

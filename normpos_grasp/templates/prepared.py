@@ -1,0 +1,132 @@
+"""Per-template data the fitter reuses: surface samples with normals, KD-tree, distance grid, descriptors.
+
+Built once per `Template` object and cached (weakly) so fitting many instances costs nothing extra.
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.spatial import cKDTree
+
+from normpos_grasp.templates.model import Template
+from normpos_grasp.typing import FloatArray, IntArray
+
+_CACHE: weakref.WeakKeyDictionary[Template, PreparedTemplate] = weakref.WeakKeyDictionary()
+_LOCK = threading.Lock()
+
+N_SAMPLES = 4000
+GRID = 64
+
+
+@dataclass(frozen=True, eq=False)
+class PreparedTemplate:
+    """Cached template geometry (object frame, metres).
+
+    samples / normals: (S, 3) surface points and outward unit normals. tree: cKDTree on samples.
+    centroid (3,): area centroid. axes (3, 3): principal axes as columns, eigenvalues descending.
+    diameter: metres. spacing: mean sample spacing, metres. grid_origin (3,), grid_cell: distance-grid frame;
+    grid_index: (G, G, G) nearest sample per cell. sym: (M, 4, 4) symmetry transforms incl. identity.
+    desc_idx: (F,) sample indices with FPFH descriptors `desc` (F, 33); desc_tree on them.
+    """
+
+    samples: FloatArray
+    normals: FloatArray
+    tree: cKDTree
+    centroid: FloatArray
+    axes: FloatArray
+    eigvals: FloatArray
+    diameter: float
+    spacing: float
+    grid_origin: FloatArray
+    grid_cell: float
+    grid_index: npt.NDArray[np.int32]
+    sym: FloatArray
+    desc_idx: IntArray
+    desc: FloatArray
+    desc_tree: cKDTree
+    voxel: float
+
+    def grid_lookup(self, points: FloatArray) -> tuple[IntArray, FloatArray]:
+        """(P, 3) object-frame points -> nearest-sample index (P,) and a bool-as-float inside-grid flag (P,)."""
+        ijk = np.floor((points - self.grid_origin) / self.grid_cell).astype(np.int64)
+        g = self.grid_index.shape[0]
+        inside = np.all((ijk >= 0) & (ijk < g), axis=-1)
+        ijk = np.clip(ijk, 0, g - 1)
+        idx = self.grid_index[ijk[..., 0], ijk[..., 1], ijk[..., 2]].astype(np.int64)
+        return idx, inside.astype(np.float64)
+
+
+def prepare(template: Template) -> PreparedTemplate:
+    """The cached `PreparedTemplate` of `template` (built on first use, about 0.1-0.3 s)."""
+    with _LOCK:
+        hit = _CACHE.get(template)
+    if hit is not None:
+        return hit
+    prepared = _build(template)
+    with _LOCK:
+        _CACHE[template] = prepared
+    return prepared
+
+
+def _build(template: Template) -> PreparedTemplate:
+    from normpos_grasp.templates.features import fpfh, voxel_downsample
+
+    mesh = template.mesh
+    rng = np.random.default_rng(12345)
+    area = np.asarray(mesh.area_faces, dtype=np.float64)
+    probs = area / area.sum()
+    face = rng.choice(len(area), size=N_SAMPLES, p=probs)
+    tri = np.asarray(mesh.triangles, dtype=np.float64)[face]
+    r1 = np.sqrt(rng.random(N_SAMPLES))[:, None]
+    r2 = rng.random(N_SAMPLES)[:, None]
+    samples = (1 - r1) * tri[:, 0] + r1 * (1 - r2) * tri[:, 1] + r1 * r2 * tri[:, 2]
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)[face]
+    # replace random sampling by a well-spread subset (farthest-point-like via voxel thinning)
+    centroid = (area[:, None] * np.asarray(mesh.triangles_center)).sum(0) / area.sum()
+    cov = np.cov((samples - centroid).T)
+    eigvals, axes = np.linalg.eigh(cov)
+    order = np.argsort(eigvals)[::-1]
+    eigvals = eigvals[order]
+    axes = axes[:, order]
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
+    if len(hull) > 600:
+        hull = hull[rng.choice(len(hull), 600, replace=False)]
+    diameter = float(np.max(np.linalg.norm(hull[:, None] - hull[None], axis=-1)))
+    spacing = float(np.sqrt(area.sum() / N_SAMPLES))
+    tree = cKDTree(samples)
+    lo = samples.min(0)
+    hi = samples.max(0)
+    pad = 0.35 * diameter
+    cell = float(np.max(hi - lo + 2 * pad) / GRID)
+    origin = lo - pad
+    centers = origin + (np.stack(np.meshgrid(*[np.arange(GRID)] * 3, indexing="ij"), -1) + 0.5) * cell
+    _, gidx = tree.query(centers.reshape(-1, 3))
+    grid_index = np.asarray(gidx, dtype=np.int32).reshape(GRID, GRID, GRID)
+    voxel = diameter / 18.0
+    keep = voxel_downsample(samples, voxel)
+    desc = fpfh(samples[keep], normals[keep], voxel * 2.5)
+    return PreparedTemplate(
+        samples=samples,
+        normals=normals,
+        tree=tree,
+        centroid=centroid,
+        axes=axes,
+        eigvals=eigvals,
+        diameter=diameter,
+        spacing=spacing,
+        grid_origin=origin,
+        grid_cell=cell,
+        grid_index=grid_index,
+        sym=template.symmetry.transforms(continuous_steps=12),
+        desc_idx=keep,
+        desc=desc,
+        desc_tree=cKDTree(desc),
+        voxel=voxel,
+    )
