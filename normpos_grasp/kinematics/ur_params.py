@@ -9,7 +9,7 @@ UR30 velocity/effort limits are copies of the UR20's in that source: unverified 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,6 +28,56 @@ JOINT_NAMES = (
 
 
 @dataclass(frozen=True)
+class LinkGeometry:
+    """Collision-geometry sizes of one arm, metres (collision only: never used for kinematics).
+
+    footprint_radius: half the base footprint diameter. base_height: height of the base cylinder.
+    shoulder_offset: lateral offset of the upper-arm tube from the DH plane along the joint-2 axis;
+    elbow_offset: lateral step back from upper arm to forearm (the forearm sits at shoulder_offset - elbow_offset).
+    Radii: shoulder (shoulder joint housing, also the vertical column), upper_arm (tube), elbow (housing),
+    forearm (tube), wrist (the three wrist housings).
+    """
+
+    footprint_radius: float
+    base_height: float
+    shoulder_offset: float
+    elbow_offset: float
+    shoulder_radius: float
+    upper_arm_radius: float
+    elbow_radius: float
+    forearm_radius: float
+    wrist_radius: float
+
+
+# UR5e reference sizes: footprint diameter 149 mm (UR5e datasheet); lateral offsets 0.138 / 0.131 m
+# (ur_e_description shoulder_offset / elbow_offset, also in mujoco_menagerie's ur5e.xml body positions);
+# radii of mujoco_menagerie's hand-made UR5e collision capsules (shoulder 0.06, upper arm 0.05, elbow 0.055,
+# forearm 0.038, wrists 0.04). Other models: scaled from these (see `_scaled_geometry`), estimates.
+_UR5E_FOOTPRINT_DIAMETER = 0.149
+_UR5E_D4, _UR5E_D5 = 0.1333, 0.0997
+
+
+def _scaled_geometry(footprint_diameter: float, d1: float, d4: float, d5: float) -> LinkGeometry:
+    """Collision sizes scaled from the UR5e: radii of the big joints by footprint ratio, lateral offsets by d4
+    ratio, wrist radius by d5 ratio, base height 0.5 d1. Rounded to the millimetre."""
+    big = footprint_diameter / _UR5E_FOOTPRINT_DIAMETER
+    lat = d4 / _UR5E_D4
+    small = d5 / _UR5E_D5
+    r = lambda v: round(v, 3)  # noqa: E731
+    return LinkGeometry(
+        footprint_radius=r(footprint_diameter / 2.0),
+        base_height=r(0.5 * d1),
+        shoulder_offset=r(0.138 * lat),
+        elbow_offset=r(0.131 * lat),
+        shoulder_radius=r(0.06 * big),
+        upper_arm_radius=r(0.05 * big),
+        elbow_radius=r(0.055 * big),
+        forearm_radius=r(0.038 * big),
+        wrist_radius=r(0.04 * small),
+    )
+
+
+@dataclass(frozen=True)
 class URParams:
     """Nominal parameters of one UR model.
 
@@ -35,6 +85,8 @@ class URParams:
     position_limit: per-joint symmetric limit, radians (inf: unlimited). velocity_limit: rad/s.
     effort_limit: N m. masses: base, shoulder, upper arm, forearm, wrist 1-3, kg.
     payload_kg, reach_m: UR's rated figures (see robots/README.md for their status).
+    footprint_diameter_m: base footprint diameter (datasheet). geometry: collision sizes (None: scaled from
+    the UR5e by `footprint_diameter_m`, d4 and d5; see `link_geometry`).
     """
 
     name: str
@@ -47,6 +99,15 @@ class URParams:
     payload_kg: float
     reach_m: float
     verified_limits: bool = True
+    footprint_diameter_m: float = 0.149
+    geometry: LinkGeometry | None = field(default=None)
+
+    @property
+    def link_geometry(self) -> LinkGeometry:
+        """Collision sizes of this arm (explicit `geometry` or the UR5e-scaled estimate)."""
+        if self.geometry is not None:
+            return self.geometry
+        return _scaled_geometry(self.footprint_diameter_m, self.d[0], self.d[3], self.d[4])
 
 
 def _deg(*values: float) -> tuple[float, float, float, float, float, float]:
@@ -66,6 +127,7 @@ UR_PARAMS: dict[str, URParams] = {
         (2.0, 1.98, 3.4445, 1.437, 0.871, 0.805, 0.261),
         3.0,
         0.5,
+        footprint_diameter_m=0.128,
     ),
     "ur5e": URParams(
         "ur5e",
@@ -77,6 +139,7 @@ UR_PARAMS: dict[str, URParams] = {
         (4.0, 3.761, 8.058, 2.846, 1.37, 1.3, 0.365),
         5.0,
         0.85,
+        footprint_diameter_m=0.149,
     ),
     "ur10e": URParams(
         "ur10e",
@@ -88,6 +151,7 @@ UR_PARAMS: dict[str, URParams] = {
         (4.0, 7.369, 13.051, 3.989, 2.1, 1.98, 0.615),
         12.5,
         1.3,
+        footprint_diameter_m=0.19,
     ),
     "ur16e": URParams(
         "ur16e",
@@ -99,6 +163,7 @@ UR_PARAMS: dict[str, URParams] = {
         (4.0, 7.369, 10.45, 4.321, 2.18, 2.033, 0.907),
         16.0,
         0.9,
+        footprint_diameter_m=0.19,
     ),
     "ur20": URParams(
         "ur20",
@@ -110,6 +175,7 @@ UR_PARAMS: dict[str, URParams] = {
         (4.0, 16.343, 29.632, 7.879, 3.054, 3.126, 0.926),
         20.0,
         1.75,
+        footprint_diameter_m=0.245,
     ),
     "ur30": URParams(
         "ur30",
@@ -122,6 +188,7 @@ UR_PARAMS: dict[str, URParams] = {
         30.0,
         1.3,
         verified_limits=False,
+        footprint_diameter_m=0.245,
     ),
 }
 

@@ -1,0 +1,170 @@
+"""Closed-form inverse kinematics of UR arms (nominal DH structure), scalar and vectorised.
+
+The eight solutions are indexed 4 * shoulder + 2 * wrist + elbow, each bit 0 for the '+' branch:
+shoulder: q1 = psi + pi/2 +- phi, wrist: q5 = +-acos(.), elbow: q3 = +-acos(.). Angles come in (-pi, pi].
+At a wrist singularity (|sin q5| < `SINGULAR_SIN`) q6 is free: it takes the caller's `q6_default` and q4
+absorbs the rest, which reproduces the pose exactly. Derivation: K. Hawkins, "Analytic inverse kinematics
+for the Universal Robots UR-5/UR-10 arms" (2013), rewritten for the standard DH table in ur_params.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from normpos_grasp.kinematics.ur_params import URParams
+from normpos_grasp.typing import BoolArray, FloatArray
+
+SINGULAR_SIN = 1e-10
+# Slack on the acos arguments so poses exactly on a workspace boundary are not lost to round-off.
+_ACOS_SLACK = 1e-10
+_TWO_PI = 2.0 * math.pi
+
+# Branch signs per solution index: (shoulder, wrist, elbow), +1 or -1.
+BRANCH_SIGNS = tuple((1 - 2 * (i >> 2), 1 - 2 * ((i >> 1) & 1), 1 - 2 * (i & 1)) for i in range(8))
+
+
+def dh_lengths(params: URParams) -> tuple[float, float, float, float, float, float]:
+    """(d1, a2, a3, d4, d5, d6) of a UR model, metres."""
+    return (params.d[0], params.a[1], params.a[2], params.d[3], params.d[4], params.d[5])
+
+
+def _acos(x: float) -> float | None:
+    if x > 1.0 + _ACOS_SLACK or x < -1.0 - _ACOS_SLACK:
+        return None
+    return math.acos(min(1.0, max(-1.0, x)))
+
+
+def ik_single(
+    lengths: tuple[float, float, float, float, float, float], pose: list[list[float]], q6_default: float = 0.0
+) -> tuple[list[tuple[float, ...] | None], str]:
+    """The 8 closed-form solutions of one base_from_flange pose (nested lists, 4x4), scalar math.
+
+    Returns (solutions, reason): solutions[i] is a 6-tuple of radians or None where branch i has no
+    solution; reason is '' when some solution exists, else 'out_of_reach'.
+    """
+    d1, a2, a3, d4, d5, d6 = lengths
+    (nx, ox, ax, px), (ny, oy, ay, py), (nz, oz, az, pz) = pose[0], pose[1], pose[2]
+    p05x, p05y = px - d6 * ax, py - d6 * ay
+    r = math.hypot(p05x, p05y)
+    out: list[tuple[float, ...] | None] = [None] * 8
+    if r <= 0.0:
+        return out, "out_of_reach"
+    phi = _acos(d4 / r)
+    if phi is None:
+        return out, "out_of_reach"
+    base = math.atan2(p05x, -p05y)
+    a2a3 = 2.0 * a2 * a3
+    aa = a2 * a2 + a3 * a3
+    for si in range(2):
+        t1 = base + phi if si == 0 else base - phi
+        t1 = math.remainder(t1, _TWO_PI)
+        c1, s1 = math.cos(t1), math.sin(t1)
+        t5a = _acos((px * s1 - py * c1 - d4) / d6)
+        if t5a is None:
+            continue
+        n_c = nx * c1 + ny * s1
+        o_c = ox * c1 + oy * s1
+        a_c = ax * c1 + ay * s1
+        num6 = -(ox * s1 - oy * c1)
+        den6 = nx * s1 - ny * c1
+        for wi in range(2):
+            t5 = t5a if wi == 0 else -t5a
+            s5, c5 = math.sin(t5), math.cos(t5)
+            if abs(s5) < SINGULAR_SIN:
+                t6 = q6_default
+            else:
+                t6 = math.atan2(num6, den6) if s5 > 0 else math.atan2(-num6, -den6)
+            c6, s6 = math.cos(t6), math.sin(t6)
+            x04x = -s5 * a_c - c5 * (s6 * o_c - c6 * n_c)
+            x04y = c5 * (nz * c6 - oz * s6) - az * s5
+            p13x = d5 * (s6 * n_c + c6 * o_c) - d6 * a_c + px * c1 + py * s1
+            p13y = pz - d1 - d6 * az + d5 * (oz * c6 + nz * s6)
+            t3a = _acos((p13x * p13x + p13y * p13y - aa) / a2a3)
+            if t3a is None:
+                continue
+            for ei in range(2):
+                t3 = t3a if ei == 0 else -t3a
+                s3, c3 = math.sin(t3), math.cos(t3)
+                aa_ = a2 + a3 * c3
+                bb = a3 * s3
+                t2 = math.atan2(aa_ * p13y - bb * p13x, aa_ * p13x + bb * p13y)
+                c23, s23 = math.cos(t2 + t3), math.sin(t2 + t3)
+                t4 = math.atan2(c23 * x04y - s23 * x04x, x04x * c23 + x04y * s23)
+                out[4 * si + 2 * wi + ei] = (t1, t2, t3, t4, t5, t6)
+    return out, ("" if any(s is not None for s in out) else "out_of_reach")
+
+
+def ik_batch(
+    lengths: tuple[float, float, float, float, float, float], poses: FloatArray, q6_default: FloatArray | float = 0.0
+) -> tuple[FloatArray, BoolArray]:
+    """Vectorised closed form for poses (N, 4, 4): returns q (N, 8, 6) radians and valid (N, 8).
+
+    Invalid entries of q are NaN. `q6_default` (scalar or (N,)) is used for q6 at wrist singularities.
+    """
+    d1, a2, a3, d4, d5, d6 = lengths
+    t = np.asarray(poses, dtype=np.float64)
+    n = t.shape[0]
+    nx, ny, nz = t[:, 0, 0, None], t[:, 1, 0, None], t[:, 2, 0, None]
+    ox, oy, oz = t[:, 0, 1, None], t[:, 1, 1, None], t[:, 2, 1, None]
+    ax, ay, az = t[:, 0, 2, None], t[:, 1, 2, None], t[:, 2, 2, None]
+    px, py, pz = t[:, 0, 3, None], t[:, 1, 3, None], t[:, 2, 3, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p05x = px - d6 * ax
+        p05y = py - d6 * ay
+        ratio = d4 / np.hypot(p05x, p05y)  # (N, 1)
+        ok1 = ratio <= 1.0 + _ACOS_SLACK
+        phi = np.arccos(np.minimum(ratio, 1.0))
+        t1 = np.arctan2(p05x, -p05y) + np.concatenate([phi, -phi], axis=1)  # (N, 2)
+        t1 = t1 - _TWO_PI * np.round(t1 / _TWO_PI)
+        c1, s1 = np.cos(t1), np.sin(t1)
+        c5a = (px * s1 - py * c1 - d4) / d6  # (N, 2)
+        ok5 = np.abs(c5a) <= 1.0 + _ACOS_SLACK
+        t5a = np.arccos(np.clip(c5a, -1.0, 1.0))
+        t5 = np.stack([t5a, -t5a], axis=2)  # (N, 2, 2)
+        s5, c5 = np.sin(t5), np.cos(t5)
+        num6 = (oy * c1 - ox * s1)[:, :, None]
+        den6 = (nx * s1 - ny * c1)[:, :, None]
+        sgn = np.where(s5 >= 0.0, 1.0, -1.0)
+        t6 = np.arctan2(sgn * num6, sgn * den6)
+        singular = np.abs(s5) < SINGULAR_SIN
+        if np.any(singular):
+            q6d = np.broadcast_to(np.asarray(q6_default, dtype=np.float64).reshape(-1, 1, 1), (n, 2, 2))
+            t6 = np.where(singular, q6d, t6)
+        c6, s6 = np.cos(t6), np.sin(t6)
+        c1e, s1e = c1[:, :, None], s1[:, :, None]
+        n_c = nx[:, :, None] * c1e + ny[:, :, None] * s1e
+        o_c = ox[:, :, None] * c1e + oy[:, :, None] * s1e
+        a_c = ax[:, :, None] * c1e + ay[:, :, None] * s1e
+        x04x = -s5 * a_c - c5 * (s6 * o_c - c6 * n_c)
+        x04y = c5 * (nz[:, :, None] * c6 - oz[:, :, None] * s6) - az[:, :, None] * s5
+        p13x = d5 * (s6 * n_c + c6 * o_c) - d6 * a_c + px[:, :, None] * c1e + py[:, :, None] * s1e
+        p13y = (pz - d1 - d6 * az)[:, :, None] + d5 * (oz[:, :, None] * c6 + nz[:, :, None] * s6)
+        c3a = (p13x * p13x + p13y * p13y - (a2 * a2 + a3 * a3)) / (2.0 * a2 * a3)  # (N, 2, 2)
+        ok3 = np.abs(c3a) <= 1.0 + _ACOS_SLACK
+        t3a = np.arccos(np.clip(c3a, -1.0, 1.0))
+        t3 = np.stack([t3a, -t3a], axis=3)  # (N, 2, 2, 2)
+        c3 = np.clip(c3a, -1.0, 1.0)[..., None]
+        s3 = np.sin(t3)
+        aa = a2 + a3 * c3
+        bb = a3 * s3
+        p13x, p13y = p13x[..., None], p13y[..., None]
+        t2 = np.arctan2(aa * p13y - bb * p13x, aa * p13x + bb * p13y)
+        t23 = t2 + t3
+        c23, s23 = np.cos(t23), np.sin(t23)
+        x04x, x04y = x04x[..., None], x04y[..., None]
+        t4 = np.arctan2(c23 * x04y - s23 * x04x, x04x * c23 + x04y * s23)
+    valid = (ok1[:, :, None, None] & ok5[:, :, None, None] & ok3[..., None]) & np.ones((1, 1, 1, 2), dtype=bool)
+    shape = (n, 2, 2, 2)
+    q5d = np.empty((n, 2, 2, 2, 6))
+    q5d[..., 0] = np.broadcast_to(t1[:, :, None, None], shape)
+    q5d[..., 1] = t2
+    q5d[..., 2] = t3
+    q5d[..., 3] = t4
+    q5d[..., 4] = np.broadcast_to(t5[..., None], shape)
+    q5d[..., 5] = np.broadcast_to(t6[..., None], shape)
+    valid = valid.reshape(n, 8)
+    q = q5d.reshape(n, 8, 6)
+    q[~valid] = np.nan
+    return q, valid

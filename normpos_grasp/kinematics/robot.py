@@ -1,0 +1,425 @@
+"""`Robot`: one UR arm by name: FK, Jacobians and link poses (pinocchio), analytic IK with joint-limit branches,
+calibrated models (factory DH corrections, IK refined by Newton steps), collision geometry.
+
+Frames: base = UR's DH frame 0 (the controller's base frame); flange = DH frame 6, the pose actual_TCP_pose
+reports with a zero TCP offset. Joint angles in radians, lengths in metres.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+import pinocchio as pin
+
+from normpos_grasp.errors import InputError, NoIKSolution, RobotModelError
+from normpos_grasp.kinematics.analytic_ik import dh_lengths, ik_batch, ik_single
+from normpos_grasp.kinematics.dh import DHCalibration, DHChain
+from normpos_grasp.kinematics.mjcf import arm_mjcf
+from normpos_grasp.kinematics.shapes import ARM_LINKS, CollisionShape, arm_collision_shapes
+from normpos_grasp.kinematics.ur_params import JOINT_NAMES, URParams, ur_params
+from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray
+from normpos_grasp.validation import as_float_array
+
+if TYPE_CHECKING:
+    import mujoco
+
+logger = logging.getLogger(__name__)
+
+ROBOT_NAMES = ("ur3e", "ur5e", "ur10e", "ur16e", "ur20", "ur30")
+_TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class IKOptions:
+    """Settings of `Robot.ik` / `Robot.ik_or_raise`.
+
+    wrist_singularity_tol: ik_or_raise rejects solutions with |sin q5| below this (dimensionless; 1e-3 is
+    0.057 deg from the singularity). newton_iterations / newton_tol: refinement on a calibrated model
+    (tolerance on the 6-D pose error, metres / radians). dedupe_tol: solutions closer than this (radians,
+    max-abs) are merged. all_branches: also return the +-2 pi copies of joints allowed to turn past +-pi.
+    """
+
+    wrist_singularity_tol: float = 1e-3
+    newton_iterations: int = 12
+    newton_tol: float = 1e-12
+    dedupe_tol: float = 1e-9
+    all_branches: bool = True
+
+
+@dataclass(frozen=True)
+class IKLabel:
+    """Configuration of a solution. shoulder 'left': wrist centre on the -x side of the shoulder link frame
+    (branch q1 = psi + pi/2 + phi); elbow 'up': elbow above the shoulder-wrist line (towards base +z);
+    wrist 'noflip': sin q5 < 0 (UR's usual tool-down pose), 'flip' otherwise."""
+
+    shoulder: Literal["left", "right"]
+    elbow: Literal["up", "down"]
+    wrist: Literal["flip", "noflip"]
+
+    def __str__(self) -> str:
+        return f"shoulder-{self.shoulder}/elbow-{self.elbow}/wrist-{self.wrist}"
+
+
+@dataclass(frozen=True)
+class SingularityDistance:
+    """How far q is from each UR singularity: shoulder (m, wrist centre distance from the plane of joints 1-2
+    axes), elbow (|sin q3|), wrist (|sin q5|), and the smallest singular value of the Jacobian."""
+
+    shoulder_m: float
+    elbow: float
+    wrist: float
+    min_singular_value: float
+
+
+@dataclass
+class _PinState:
+    model: pin.Model
+    data: pin.Data = field(init=False)
+    flange_id: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.data = self.model.createData()
+        self.flange_id = self.model.getFrameId("flange")
+
+
+def build_pinocchio_model(params: URParams, chain: DHChain) -> pin.Model:
+    """Pinocchio model of the chain: revolute-z joints named per JOINT_NAMES, a BODY frame per link of
+    ARM_LINKS ('base' on the universe) and the OP_FRAME 'flange'; limits and link masses from `params`."""
+    model = pin.Model()
+    model.name = params.name
+    model.addFrame(pin.Frame("base", 0, 0, pin.SE3.Identity(), pin.FrameType.BODY))
+    parent, placement = 0, np.eye(4)
+    for i in range(6):
+        se3 = pin.SE3(placement[:3, :3].copy(), placement[:3, 3].copy())
+        limit = params.position_limit[i]
+        lim = limit if math.isfinite(limit) else 1e10
+        joint_id = model.addJoint(
+            parent,
+            pin.JointModelRZ(),
+            se3,
+            JOINT_NAMES[i],
+            np.array([params.effort_limit[i]]),
+            np.array([params.velocity_limit[i]]),
+            np.array([-lim]),
+            np.array([lim]),
+        )
+        mass = params.masses[i + 1]
+        model.appendBodyToJoint(joint_id, pin.Inertia(mass, np.zeros(3), np.eye(3) * mass * 1e-3), pin.SE3.Identity())
+        model.addFrame(
+            pin.Frame(
+                ARM_LINKS[i + 1],
+                joint_id,
+                model.getFrameId(JOINT_NAMES[i]) if i else 0,
+                pin.SE3.Identity(),
+                pin.FrameType.BODY,
+            )
+        )
+        parent, placement = joint_id, chain.link_transform(i)
+    flange = pin.SE3(placement[:3, :3].copy(), placement[:3, 3].copy())
+    model.addFrame(pin.Frame("flange", parent, model.nframes - 1, flange, pin.FrameType.OP_FRAME))
+    return model
+
+
+class Robot:
+    """A UR arm: load with `Robot.load('ur5e')` (optionally with factory calibration)."""
+
+    def __init__(self, params: URParams, calibration: DHCalibration | None = None) -> None:
+        self.params = params
+        self.name = params.name
+        self.calibration = calibration
+        self.chain = DHChain.nominal(params, calibration)
+        self._lengths = dh_lengths(params)
+        self._pin = _PinState(build_pinocchio_model(params, self.chain))
+        limits = np.array(params.position_limit)
+        self._lower, self._upper = -limits, limits
+        self._lower.setflags(write=False)
+        self._upper.setflags(write=False)
+        # Multiples of 2 pi that can bring some angle in (-pi, pi] inside each joint's limits.
+        per_joint = []
+        for lim in limits:
+            m = int(math.ceil(lim / _TWO_PI)) if math.isfinite(lim) else 0
+            per_joint.append([k * _TWO_PI for k in range(-m, m + 1) if abs(k) * _TWO_PI < lim + math.pi])
+        self._branch_offsets = np.array(list(itertools.product(*per_joint)))  # (C, 6)
+
+    @staticmethod
+    def load(name: str, calibration: DHCalibration | str | Path | None = None) -> Robot:
+        """The arm called `name` (ur3e, ur5e, ur10e, ur16e, ur20, ur30); `calibration`: DH corrections or the
+        path of a calibration.conf-style file. Raises RobotModelError for unknown names."""
+        cal = DHCalibration.from_conf(calibration) if isinstance(calibration, str | Path) else calibration
+        return Robot(ur_params(name), cal)
+
+    def __repr__(self) -> str:
+        return f"Robot({self.name!r}{', calibrated' if self.calibration else ''})"
+
+    # ----------------------------------------------------------------------------------------------- models
+    @property
+    def calibrated(self) -> bool:
+        """True when factory DH corrections are applied."""
+        return self.calibration is not None
+
+    @property
+    def pinocchio_model(self) -> pin.Model:
+        """The pinocchio model (frames: ARM_LINKS and 'flange')."""
+        return self._pin.model
+
+    @property
+    def mjcf_path(self) -> Path:
+        """Path of the committed nominal MJCF file of this model (robots/<name>/<name>.xml)."""
+        return Path(str(resources.files("normpos_grasp.robot_models") / self.name / f"{self.name}.xml"))
+
+    @property
+    def scene_path(self) -> Path:
+        """Path of the committed scene file (robots/<name>/scene.xml)."""
+        return Path(str(resources.files("normpos_grasp.robot_models") / self.name / "scene.xml"))
+
+    def mjcf_xml(self) -> str:
+        """MJCF text of this arm (the calibrated chain when calibrated)."""
+        return arm_mjcf(self.params, self.chain)
+
+    def mujoco_model(self) -> mujoco.MjModel:
+        """A fresh MuJoCo model of this arm (the committed file, or built from the calibrated chain)."""
+        import mujoco
+
+        if self.calibrated:
+            return mujoco.MjModel.from_xml_string(self.mjcf_xml())
+        if not self.mjcf_path.is_file():
+            raise RobotModelError(
+                f"{self.mjcf_path} is missing; regenerate with `python -m normpos_grasp.robot_models.generate`"
+            )
+        return mujoco.MjModel.from_xml_path(str(self.mjcf_path))
+
+    # --------------------------------------------------------------------------------------------- limits
+    @property
+    def joint_limits(self) -> tuple[FloatArray, FloatArray]:
+        """(lower (6,), upper (6,)) joint position limits, radians (inf where unlimited)."""
+        return self._lower, self._upper
+
+    @property
+    def velocity_limits(self) -> FloatArray:
+        """(6,) joint speed limits, rad/s."""
+        return np.array(self.params.velocity_limit)
+
+    def within_limits(self, q: ArrayLike, tol: float = 0.0) -> BoolArray:
+        """Whether each configuration of q (..., 6) lies within the position limits (+- tol radians)."""
+        qs = np.asarray(q, dtype=np.float64)
+        return np.all((qs >= self._lower - tol) & (qs <= self._upper + tol), axis=-1)
+
+    @cached_property
+    def collision_geometry(self) -> list[CollisionShape]:
+        """Capsules/cylinders per link; place each at link_poses(q)[shape.link] @ shape.link_from_shape."""
+        return arm_collision_shapes(self.params)
+
+    # --------------------------------------------------------------------------------------------- FK
+    def _q(self, q: ArrayLike) -> FloatArray:
+        return as_float_array(q, "q", (6,))
+
+    def fk(self, q: ArrayLike) -> FloatArray:
+        """base_from_flange (4, 4) at joint angles q (6,), radians (pinocchio)."""
+        st = self._pin
+        pin.framesForwardKinematics(st.model, st.data, self._q(q))
+        return np.array(st.data.oMf[st.flange_id].homogeneous)
+
+    def fk_batch(self, qs: ArrayLike) -> FloatArray:
+        """base_from_flange (N, 4, 4) for qs (N, 6) (vectorised DH chain, same model as `fk`)."""
+        return self.chain.forward_kinematics(as_float_array(qs, "qs", (None, 6)))
+
+    def link_poses(self, q: ArrayLike) -> dict[str, FloatArray]:
+        """base_from_link (4, 4) of every link in ARM_LINKS plus 'flange', at q (6,)."""
+        st = self._pin
+        pin.framesForwardKinematics(st.model, st.data, self._q(q))
+        names = (*ARM_LINKS, "flange")
+        return {n: np.array(st.data.oMf[st.model.getFrameId(n)].homogeneous) for n in names}
+
+    def jacobian(self, q: ArrayLike) -> FloatArray:
+        """(6, 6) Jacobian of the flange at q: rows [v; w], v the linear velocity of the flange origin and w
+        the angular velocity, both expressed in the base frame (pinocchio LOCAL_WORLD_ALIGNED)."""
+        st = self._pin
+        qq = self._q(q)
+        pin.computeJointJacobians(st.model, st.data, qq)
+        pin.framesForwardKinematics(st.model, st.data, qq)
+        return np.array(pin.getFrameJacobian(st.model, st.data, st.flange_id, pin.LOCAL_WORLD_ALIGNED))
+
+    def manipulability(self, q: ArrayLike) -> float:
+        """Yoshikawa's measure sqrt(det(J J^T)) of the flange Jacobian (0 at a singularity)."""
+        jac = self.jacobian(q)
+        return float(math.sqrt(max(np.linalg.det(jac @ jac.T), 0.0)))
+
+    def singularity_distance(self, q: ArrayLike) -> SingularityDistance:
+        """Distance of q (6,) from the shoulder, elbow and wrist singularities (see SingularityDistance)."""
+        qq = self._q(q)
+        poses = self.link_poses(qq)
+        wrist_centre = poses["wrist_2"][:3, 3]
+        shoulder = poses["shoulder"]
+        x_local = float(shoulder[:3, 0] @ (wrist_centre - shoulder[:3, 3]))
+        sv = np.linalg.svd(self.jacobian(qq), compute_uv=False)
+        return SingularityDistance(abs(x_local), abs(math.sin(qq[2])), abs(math.sin(qq[4])), float(sv[-1]))
+
+    def ik_labels(self, q: ArrayLike) -> IKLabel:
+        """Shoulder/elbow/wrist configuration label of q (6,) (see IKLabel)."""
+        qq = self._q(q)
+        poses = self.link_poses(qq)
+        sh = poses["shoulder"]
+        wrist_centre = poses["wrist_2"][:3, 3]
+        x_local = float(sh[:3, 0] @ (wrist_centre - sh[:3, 3]))
+        s_origin = poses["upper_arm"][:3, 3]
+        elbow = poses["forearm"][:3, 3]
+        line = wrist_centre - s_origin
+        normal = poses["upper_arm"][:3, 2]
+        up = np.cross(normal, line)  # in the arm plane, perpendicular to the shoulder-wrist line
+        if up[2] < 0 or (abs(up[2]) < 1e-12 and float(up @ sh[:3, 0]) < 0):
+            up = -up
+        return IKLabel(
+            "left" if x_local < 0 else "right",
+            "up" if float(up @ (elbow - s_origin)) >= 0 else "down",
+            "noflip" if math.sin(qq[4]) < 0 else "flip",
+        )
+
+    # --------------------------------------------------------------------------------------------- IK
+    def _check_target(self, base_from_flange: ArrayLike) -> FloatArray:
+        pose = np.asarray(base_from_flange, dtype=np.float64)
+        if pose.shape != (4, 4) or not np.isfinite(pose).all():
+            raise InputError(f"base_from_flange: expected a finite (4, 4) pose, got shape {pose.shape}")
+        rot = pose[:3, :3]
+        err = float(np.abs(rot.T @ rot - np.eye(3)).max())
+        if err > 1e-6 or np.linalg.det(rot) < 0 or np.abs(pose[3] - (0, 0, 0, 1)).max() > 1e-9:
+            raise InputError(f"base_from_flange: rotation is not orthonormal (error {err:.2e}) or last row wrong")
+        return pose
+
+    def _principal(self, pose: FloatArray, q6_default: float, options: IKOptions) -> tuple[FloatArray, str]:
+        """Distinct principal solutions (k, 6) in (-pi, pi], refined on the calibrated chain if needed."""
+        sols, reason = ik_single(self._lengths, pose.tolist(), q6_default)
+        found = [s for s in sols if s is not None]
+        if not found:
+            return np.empty((0, 6)), reason
+        q = np.array(found)
+        if self.calibrated:
+            q = self._refine(q, pose, options)
+            if q.shape[0] == 0:
+                return q, "not_converged"
+            q = q - _TWO_PI * np.round(q / _TWO_PI)
+        close = np.abs(q[:, None, :] - q[None, :, :]).max(axis=2) <= options.dedupe_tol
+        duplicate = np.triu(close, k=1).any(axis=0)  # same as an earlier solution
+        return q[~duplicate], ""
+
+    def _refine(self, seeds: FloatArray, target: FloatArray, options: IKOptions) -> FloatArray:
+        """Newton steps on the calibrated chain from each seed; returns the converged ones."""
+        st = self._pin
+        goal = pin.SE3(target[:3, :3].copy(), target[:3, 3].copy())
+        out = []
+        for seed in seeds:
+            q = seed.copy()
+            for _ in range(options.newton_iterations):
+                pin.framesForwardKinematics(st.model, st.data, q)
+                err = pin.log6(st.data.oMf[st.flange_id].actInv(goal)).vector
+                if np.abs(err).max() < options.newton_tol:
+                    out.append(q)
+                    break
+                jac = pin.computeFrameJacobian(st.model, st.data, q, st.flange_id, pin.LOCAL)
+                try:
+                    q = q + np.linalg.solve(jac, err)
+                except np.linalg.LinAlgError:
+                    break
+            else:
+                pin.framesForwardKinematics(st.model, st.data, q)
+                err = pin.log6(st.data.oMf[st.flange_id].actInv(goal)).vector
+                if np.abs(err).max() < 1e3 * options.newton_tol:
+                    out.append(q)
+        return np.array(out).reshape(-1, 6)
+
+    def _branches(self, q: FloatArray, q_near: FloatArray | None, all_branches: bool) -> FloatArray:
+        """Expand principal solutions (k, 6) into every +-2 pi copy inside the limits (or the copy nearest
+        q_near when all_branches is False); unlimited joints take the copy nearest q_near."""
+        if q.shape[0] == 0:
+            return q
+        ref = q_near if q_near is not None else np.zeros(6)
+        unlimited = ~np.isfinite(self._upper)
+        if unlimited.any():
+            q = q.copy()
+            q[:, unlimited] += _TWO_PI * np.round((ref[unlimited] - q[:, unlimited]) / _TWO_PI)
+        cand = q[:, None, :] + self._branch_offsets[None, :, :]  # (k, C, 6)
+        ok = np.all((cand >= self._lower - 1e-12) & (cand <= self._upper + 1e-12), axis=2)
+        if not all_branches:
+            dist = np.linalg.norm(cand - ref, axis=2)
+            dist[~ok] = np.inf
+            best = np.argmin(dist, axis=1)
+            keep = np.isfinite(dist[np.arange(q.shape[0]), best])
+            return cand[np.arange(q.shape[0]), best][keep]
+        return cand[ok]
+
+    def ik(
+        self, base_from_flange: ArrayLike, q_near: ArrayLike | None = None, options: IKOptions | None = None
+    ) -> FloatArray:
+        """All IK solutions (k, 6) of a base_from_flange pose inside the joint limits, sorted by Euclidean
+        joint distance to q_near (6,) (to zeros when None). Up to 8 analytic solutions, each with its +-2 pi
+        copies (options.all_branches). Empty (0, 6) when unreachable; `ik_or_raise` says why."""
+        opts = options or IKOptions()
+        pose = self._check_target(base_from_flange)
+        near = None if q_near is None else self._q(q_near)
+        q6 = 0.0 if near is None else float(near[5])
+        principal, _ = self._principal(pose, q6, opts)
+        sols = self._branches(principal, near, opts.all_branches)
+        ref = near if near is not None else np.zeros(6)
+        order = np.argsort(np.linalg.norm(sols - ref, axis=1), kind="stable")
+        return sols[order]
+
+    def ik_or_raise(
+        self, base_from_flange: ArrayLike, q_near: ArrayLike | None = None, options: IKOptions | None = None
+    ) -> FloatArray:
+        """Like `ik`, without solutions within options.wrist_singularity_tol of the wrist singularity, and
+        raising NoIKSolution(reason=out_of_reach | joint_limits | wrist_singularity | not_converged)."""
+        opts = options or IKOptions()
+        pose = self._check_target(base_from_flange)
+        near = None if q_near is None else self._q(q_near)
+        principal, reason = self._principal(pose, 0.0 if near is None else float(near[5]), opts)
+        if principal.shape[0] == 0:
+            if reason == "not_converged":
+                raise NoIKSolution(
+                    f"{self.name}: analytic seeds did not converge on the calibrated model within "
+                    f"{opts.newton_iterations} Newton steps; check the calibration deltas",
+                    "not_converged",
+                    pose,
+                )
+            dist = float(np.linalg.norm(pose[:3, 3]))
+            raise NoIKSolution(
+                f"{self.name}: flange target at {np.round(pose[:3, 3], 4).tolist()} m ({dist:.3f} m from the base "
+                f"origin) is out of reach (nominal reach {self.params.reach_m} m, and the wrist centre must stay "
+                f"more than d4={self.params.d[3]} m from the base axis); move the target closer",
+                "out_of_reach",
+                pose,
+            )
+        sols = self._branches(principal, near, opts.all_branches)
+        if sols.shape[0] == 0:
+            raise NoIKSolution(
+                f"{self.name}: {principal.shape[0]} geometric solutions exist but none within the joint limits "
+                f"{self._upper.round(3).tolist()} rad; rotate the target about the flange axis or relax limits",
+                "joint_limits",
+                pose,
+            )
+        good = np.abs(np.sin(sols[:, 4])) >= opts.wrist_singularity_tol
+        if not good.any():
+            raise NoIKSolution(
+                f"{self.name}: every solution has |sin q5| < {opts.wrist_singularity_tol} (wrist singularity: "
+                "joints 4 and 6 aligned); tilt the tool or change the approach direction",
+                "wrist_singularity",
+                pose,
+            )
+        sols = sols[good]
+        ref = near if near is not None else np.zeros(6)
+        return sols[np.argsort(np.linalg.norm(sols - ref, axis=1), kind="stable")]
+
+    def ik_batch(self, base_from_flange: ArrayLike, q6_default: float = 0.0) -> tuple[FloatArray, BoolArray]:
+        """Vectorised principal solutions for poses (N, 4, 4): q (N, 8, 6) in (-pi, pi] (NaN where invalid)
+        and valid (N, 8), solution index 4*shoulder + 2*wrist + elbow. Nominal model only (joint limits
+        not applied); a calibrated robot raises RobotModelError (use `ik` per pose)."""
+        if self.calibrated:
+            raise RobotModelError("ik_batch solves the nominal model only; use ik() on a calibrated robot")
+        poses = as_float_array(base_from_flange, "base_from_flange", (None, 4, 4))
+        return ik_batch(self._lengths, poses, q6_default)
