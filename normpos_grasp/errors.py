@@ -37,7 +37,11 @@ class CalibrationError(NormposError):
 
 
 class CameraMoved(CalibrationError):
-    """The static-reference check found the camera drifted beyond tolerance."""
+    """The static-reference check found the camera drifted beyond tolerance; `report` holds the drift report."""
+
+    def __init__(self, message: str, indices: tuple[int, ...] = (), report: Any = None) -> None:
+        super().__init__(message, indices)
+        self.report = report
 
 
 class DatasetError(NormposError):
