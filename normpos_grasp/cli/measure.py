@@ -1,0 +1,169 @@
+"""`normpos-grasp measure PATH --out OUT [--segmenter model|depth|gt]`: norm-positions of every object in a BOP
+scene or split folder.
+
+Output per frame (documented in docs/measurement.md, a public interface):
+    OUT/<scene_id:06d>/<im_id:06d>.json            summary (see below)
+    OUT/<scene_id:06d>/<im_id:06d>_instances.png   uint16, 0 background, k = instance_id
+    OUT/<scene_id:06d>/<im_id:06d>_<instance_id:03d>.ply   points (+ normals) of each object, metres
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from normpos_grasp.errors import InputError, MissingDependency, NormposError, SegmentationError
+from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
+from normpos_grasp.measure.depth import DepthFillOptions
+from normpos_grasp.measure.measure import MeasureOptions, measure_instances, normpos_to_dict
+from normpos_grasp.perception.base import Instance, Segmenter
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "measure",
+        help="measure norm-positions (world surface points per object) in BOP scenes",
+        description="Segment every frame of a BOP scene or split folder and measure each object's surface points.",
+    )
+    p.add_argument("path", type=Path, help="BOP scene folder (with scene_camera.json) or split folder of scenes")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--segmenter", choices=("model", "depth", "gt"), default="gt", help="instance source (default gt)")
+    p.add_argument("--model", type=Path, default=None, help="ONNX model for --segmenter model (default: bundled)")
+    p.add_argument("--models-dir", type=Path, default=None, help="BOP models folder to render GT masks when a scene "
+                   "has no mask_visib (default: PATH/../models)")  # fmt: skip
+    p.add_argument("--frames", type=str, default=None, help="comma-separated image ids (default: all)")
+    p.add_argument("--half-window", type=int, default=2, help="depth window S, the window is (2S+1)^2 (default 2)")
+    p.add_argument("--plain-mean", action="store_true", help="use the paper's plain window mean, not edge-aware")
+    p.add_argument("--erode", type=int, default=0, help="erode masks by this many pixels first (default 0)")
+    p.add_argument("--no-ply", action="store_true", help="do not write per-object PLY files")
+    p.set_defaults(handler=run)
+
+
+def _make_segmenter(kind: str, scene: BopScene, args: argparse.Namespace) -> Segmenter:
+    if kind == "gt":
+        from normpos_grasp.perception.gt import GroundTruthOptions, GroundTruthSegmenter
+
+        md = None if args.models_dir is None else str(args.models_dir)
+        return GroundTruthSegmenter(scene, GroundTruthOptions(models_dir=md))
+    module, cls = {
+        "model": ("normpos_grasp.perception.onnx_segmenter", "OnnxSegmenter"),
+        "depth": ("normpos_grasp.perception.depth_segmenter", "DepthSegmenter"),
+    }[kind]
+    import importlib
+
+    try:
+        factory = getattr(importlib.import_module(module), cls)
+    except MissingDependency:
+        raise
+    except (ImportError, AttributeError) as exc:
+        raise SegmentationError(
+            f"--segmenter {kind} needs {module}.{cls}, which this installation lacks ({exc}); use --segmenter gt"
+        ) from exc
+    if kind == "model" and args.model is not None:
+        segmenter: Segmenter = factory(args.model)
+        return segmenter
+    made: Segmenter = factory()
+    return made
+
+
+def run(args: argparse.Namespace) -> int:
+    path: Path = args.path
+    if is_scene_dir(path):
+        scenes = [BopScene(path)]
+    elif path.is_dir():
+        scenes = read_split(path)
+    else:
+        raise InputError(f"{path} is neither a BOP scene folder nor a split folder")
+    frames_filter = None
+    if args.frames:
+        try:
+            frames_filter = {int(x) for x in args.frames.split(",") if x.strip()}
+        except ValueError as exc:
+            raise InputError(f"--frames must be comma-separated integers, got {args.frames!r}") from exc
+    options = MeasureOptions(
+        depth=DepthFillOptions(half_window=args.half_window, edge_aware=not args.plain_mean), erode_px=args.erode
+    )
+    n_frames = n_objects = 0
+    for scene in scenes:
+        segmenter: Segmenter | None = None
+        out_dir = args.out / f"{scene.scene_id:06d}"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        ids = [i for i in scene.frame_ids if frames_filter is None or i in frames_filter]
+        for im_id in ids:
+            if segmenter is None:
+                segmenter = _make_segmenter(args.segmenter, scene, args)
+            result = measure_frame(scene, im_id, segmenter, options, out_dir, write_ply=not args.no_ply)
+            n_frames += 1
+            n_objects += len(result["objects"])
+            print(
+                f"scene {scene.scene_id:06d} frame {im_id:06d}: {len(result['objects'])} objects, "
+                f"{result['timing_ms']['total']:.1f} ms"
+            )
+    if n_frames == 0:
+        raise InputError(f"no frames matched in {path}" + (f" for --frames {args.frames}" if args.frames else ""))
+    print(f"measured {n_objects} objects in {n_frames} frames -> {args.out}")
+    return 0
+
+
+def measure_frame(
+    scene: BopScene, im_id: int, segmenter: Segmenter, options: MeasureOptions, out_dir: Path, write_ply: bool = True
+) -> dict[str, Any]:
+    """Measure one frame and write its JSON, instance PNG and PLYs into `out_dir`; returns the JSON dict."""
+    import cv2
+
+    from normpos_grasp.io.ply import write_ply as write_points
+
+    t0 = time.perf_counter()
+    frame = scene.load_frame(im_id)
+    t1 = time.perf_counter()
+    try:
+        instances = segmenter.segment(frame)
+    except NormposError:
+        raise
+    t2 = time.perf_counter()
+    items = measure_instances(frame, instances, options)
+    t3 = time.perf_counter()
+    objects = []
+    for item in items:
+        points_file = None
+        if write_ply:
+            points_file = f"{im_id:06d}_{item.instance_id:03d}.ply"
+            write_points(out_dir / points_file, item.points, normals=item.normals)
+        entry = normpos_to_dict(item, points_file)
+        objects.append(entry)
+    result: dict[str, Any] = {
+        "scene_id": scene.scene_id,
+        "im_id": int(im_id),
+        "frame": frame.frame_name,
+        "objects": objects,
+        "timing_ms": {
+            "load": round((t1 - t0) * 1000, 3),
+            "segment": round((t2 - t1) * 1000, 3),
+            "measure": round((t3 - t2) * 1000, 3),
+            "total": round((t3 - t0) * 1000, 3),
+        },
+    }
+    png = instance_image(instances, frame.depth_m.shape)
+    ok, buf = cv2.imencode(".png", png)
+    if not ok:
+        raise InputError("cannot encode the instance image")
+    (out_dir / f"{im_id:06d}_instances.png").write_bytes(buf.tobytes())
+    tmp = out_dir / f"{im_id:06d}.json.tmp"
+    tmp.write_text(json.dumps(result, indent=2))
+    tmp.replace(out_dir / f"{im_id:06d}.json")
+    return result
+
+
+def instance_image(instances: list[Instance], shape: tuple[int, ...]) -> np.ndarray:
+    """(H, W) uint16: 0 background, k = instance_id (later instances win where masks overlap)."""
+    out = np.zeros(shape[:2], dtype=np.uint16)
+    for inst in instances:
+        if not 0 < inst.instance_id < 65536:
+            raise InputError(f"instance_id must lie in 1..65535 for a uint16 image, got {inst.instance_id}")
+        out[inst.mask] = inst.instance_id
+    return out
