@@ -313,6 +313,8 @@ def load_model(xml: str) -> mujoco.MjModel:
 
 # -- composition -----------------------------------------------------------------------------
 def _choose_parts(options: SceneOptions, library: list[Template], rng: np.random.Generator) -> list[Template]:
+    if options.count == 0:
+        return []
     by_name = {t.name: t for t in library}
     names = list(options.parts) or [t.name for t in library]
     missing = [n for n in names if n not in by_name]
