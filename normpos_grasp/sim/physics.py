@@ -1,0 +1,759 @@
+"""Physics validation of one grasp in MuJoCo: approach, close (or seal), lift, move sideways, hold, judge.
+
+`validate_grasp` builds a MuJoCo scene holding the target (its convex decomposition, or exact primitives for
+boxes and spheres), its neighbours (free bodies in their true poses), the static cell geometry (boxes) and the
+gripper as a mocap-driven hand: a parallel-jaw gripper whose two fingers close at a set speed and squeeze with a
+force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or a suction cup on a
+compliant bellows whose vacuum holds the part with pressure x area once a seal check on the true surface passed
+(MuJoCo adhesion actuator). It then replays the pick and reports:
+
+- 'collision': the hand hit the cell or a neighbour (or landed on the target before closing) harder than
+  `collision_force_n` or deeper than `collision_penetration_m`: a real arm would stop;
+- 'missed': after closing / sealing the gripper does not touch the target;
+- 'drop': the target is not in the hand at the end, or was not lifted;
+- 'slip': it is in the hand but moved relative to the TCP beyond `slip_tolerance_m` / `slip_tolerance_rad`;
+- 'held': it stayed in the hand.
+
+TCP frame: z is the approach direction (into the object), x the jaw closing direction. Metres, seconds, newtons.
+The simulation is deterministic: the same inputs give bit-identical results.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from normpos_grasp.errors import InputError, SimulationError
+from normpos_grasp.geometry.transforms import invert_pose, make_pose, rotation_angle
+from normpos_grasp.sim.physics_decompose import DecompositionOptions, convex_decomposition
+from normpos_grasp.sim.physics_suction import SealCheck, SealOptions, check_seal, vacuum_force_n
+from normpos_grasp.templates.model import Template
+from normpos_grasp.typing import FloatArray
+from normpos_grasp.validation import as_float_array, check_pose
+
+if TYPE_CHECKING:
+    import mujoco
+
+logger = logging.getLogger(__name__)
+
+OUTCOMES = ("held", "slip", "drop", "collision", "missed")
+
+StaticBox = tuple[str, FloatArray, FloatArray]  # (name, world_from_box (4, 4), full size (3,))
+
+
+@dataclass(frozen=True)
+class GripperSpec:
+    """What physics needs to know about a gripper (TCP frame: z approach, x closing). Metres, newtons.
+
+    kind: 'parallel' or 'suction'. stroke_m: maximum jaw opening. grip_force_n: squeeze force per finger
+    (force limit of the jaw drive). closing_speed_m_s: jaw closing speed (both fingers together).
+    finger_length_m / finger_width_m / finger_thickness_m: finger box along z / y / x. tip_beyond_tcp_m: how far
+    the fingertips reach past the TCP along +z. palm_depth_m: palm box thickness along z behind the fingers.
+    finger_friction: Coulomb friction of the pads; torsional_friction_m: torsional friction of the pads (m).
+    cup_diameter_m: suction cup diameter; vacuum_kpa: pressure difference of the vacuum; vacuum_efficiency:
+    share of the ideal pressure x area force the cup delivers; bellows_travel_m / bellows_stiffness_n_m:
+    compliance of the cup along z; cup_friction: friction of the lip. tool_radius_m / tool_length_m: the
+    suction tool's shaft behind the cup.
+    """
+
+    kind: str = "parallel"
+    name: str = "2f85"
+    stroke_m: float = 0.085
+    grip_force_n: float = 100.0
+    closing_speed_m_s: float = 0.1
+    finger_length_m: float = 0.05
+    finger_width_m: float = 0.022
+    finger_thickness_m: float = 0.008
+    tip_beyond_tcp_m: float = 0.01
+    palm_depth_m: float = 0.04
+    finger_friction: float = 0.9
+    torsional_friction_m: float = 0.004
+    cup_diameter_m: float = 0.03
+    vacuum_kpa: float = 60.0
+    vacuum_efficiency: float = 0.8
+    bellows_travel_m: float = 0.01
+    bellows_stiffness_n_m: float = 400.0
+    cup_friction: float = 0.8
+    tool_radius_m: float = 0.012
+    tool_length_m: float = 0.08
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("parallel", "suction"):
+            raise InputError(f"GripperSpec.kind must be 'parallel' or 'suction', got {self.kind!r}")
+        positive = (
+            "stroke_m",
+            "grip_force_n",
+            "closing_speed_m_s",
+            "finger_length_m",
+            "finger_width_m",
+            "finger_thickness_m",
+            "cup_diameter_m",
+            "vacuum_kpa",
+            "bellows_travel_m",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"GripperSpec.{name} must be a positive finite number, got {value!r}")
+
+    @property
+    def vacuum_force_n(self) -> float:
+        """Holding force of a sealed cup, N."""
+        return vacuum_force_n(self.cup_diameter_m, self.vacuum_kpa, self.vacuum_efficiency)
+
+    @classmethod
+    def preset(cls, name: str) -> GripperSpec:
+        """Built-in specs: '2f85' (Robotiq 2F-85 class: 85 mm stroke, 20-235 N, here 100 N), '2f140' (140 mm,
+        10-125 N, here 60 N), 'suction' (30 mm cup, 60 kPa)."""
+        presets = {
+            "2f85": cls(),
+            "2f140": cls(
+                name="2f140",
+                stroke_m=0.14,
+                grip_force_n=60.0,
+                finger_length_m=0.06,
+                finger_width_m=0.027,
+                finger_thickness_m=0.009,
+            ),
+            "suction": cls(kind="suction", name="suction"),
+        }
+        if name not in presets:
+            raise InputError(f"unknown gripper preset {name!r}; expected one of {sorted(presets)}")
+        return presets[name]
+
+    @classmethod
+    def from_gripper(cls, gripper: Any, **overrides: Any) -> GripperSpec:
+        """Spec from a `normpos_grasp.kinematics` Gripper (attributes kind, name, stroke_m, cup_diameter_m and,
+        where present, grip_force_n / max_force_n / finger sizes); missing values come from the preset of the
+        same kind. `overrides` replace fields afterwards."""
+        if isinstance(gripper, GripperSpec):
+            return replace(gripper, **overrides)
+        kind = str(getattr(gripper, "kind", "parallel"))
+        kind = "suction" if "suction" in kind or "vacuum" in kind else "parallel"
+        name = str(getattr(gripper, "name", "2f85" if kind == "parallel" else "suction"))
+        stroke = float(getattr(gripper, "stroke_m", 0.0) or 0.0)
+        base = cls.preset("suction") if kind == "suction" else cls.preset("2f140" if stroke > 0.1 else "2f85")
+        values: dict[str, Any] = {"kind": kind, "name": name}
+        if stroke > 0:
+            values["stroke_m"] = stroke
+        for attr in ("grip_force_n", "max_force_n", "force_n"):
+            force = getattr(gripper, attr, None)
+            if force:
+                values["grip_force_n"] = float(force)
+                break
+        for attr in (
+            "cup_diameter_m",
+            "finger_length_m",
+            "finger_width_m",
+            "finger_thickness_m",
+            "tip_beyond_tcp_m",
+            "closing_speed_m_s",
+            "vacuum_kpa",
+        ):
+            value = getattr(gripper, attr, None)
+            if value:
+                values[attr] = float(value)
+        values.update(overrides)
+        return replace(base, **values)
+
+
+@dataclass(frozen=True)
+class PhysicsOptions:
+    """Settings of the pick replay. Seconds, metres, newtons, radians.
+
+    timestep_s: MuJoCo step. settle_s: the scene settles with the hand at the pre-grasp pose first.
+    approach_m / approach_s: straight approach along TCP z, distance and duration. press_m: how far a suction
+    cup is driven past the surface (compresses the bellows). close_hold_s: time after the jaws stop (or the
+    vacuum builds) before lifting. lift_m / lift_s: vertical lift (world +z). move_m / move_s: sideways move
+    (world +x, minimum-jerk: peak acceleration 5.8 * move_m / move_s^2). hold_s: hold at the end.
+    slip_tolerance_m / slip_tolerance_rad: allowed motion of the object relative to the TCP from grip to end.
+    collision_force_n / collision_penetration_m: a hand contact with the cell or a neighbour (or with the target
+    before closing) above either is a collision. neighbour_radius_m: neighbours whose bounding sphere comes
+    closer than this to the target's centre are simulated; the rest are left out.
+    object_friction / static_friction: Coulomb friction of parts and cell geometry.
+    check_every: contact checks every this many steps. seal: suction seal criteria.
+    decomposition: convex decomposition settings for non-convex parts.
+    """
+
+    timestep_s: float = 0.002
+    settle_s: float = 0.1
+    approach_m: float = 0.06
+    approach_s: float = 0.3
+    press_m: float = 0.004
+    close_hold_s: float = 0.2
+    lift_m: float = 0.1
+    lift_s: float = 0.5
+    move_m: float = 0.15
+    move_s: float = 0.5
+    hold_s: float = 0.3
+    slip_tolerance_m: float = 0.01
+    slip_tolerance_rad: float = 0.2
+    collision_force_n: float = 40.0
+    collision_penetration_m: float = 0.004
+    neighbour_radius_m: float = 0.25
+    object_friction: float = 0.5
+    static_friction: float = 0.5
+    check_every: int = 5
+    seal: SealOptions = field(default_factory=SealOptions)
+    decomposition: DecompositionOptions = field(default_factory=DecompositionOptions)
+
+
+@dataclass(frozen=True, eq=False)
+class PhysicsResult:
+    """Outcome of one simulated pick.
+
+    outcome: one of OUTCOMES. reason: a short human-readable cause. slip_m / slip_rad: motion of the object relative
+    to what holds it (the hand; the cup for suction) from grip to end (translation norm, rotation angle).
+    object_offset_m (3,): final object position in the TCP frame minus the planned one (true poses), metres.
+    tcp_from_object (4, 4): final object pose in the TCP frame (the hand's actual pose).
+    lift_m: how far the object rose.
+    max_penetration_m: deepest contact during the run. grip_force_n: normal force between hand and target after
+    closing. collision_with: names of what the hand hit ('' if nothing). seal: the suction seal check (None for
+    parallel jaws). sim_time_s: simulated time; wall_time_s: compute time. n_pieces: convex pieces of the target.
+    """
+
+    outcome: str
+    reason: str
+    slip_m: float
+    slip_rad: float
+    object_offset_m: FloatArray
+    tcp_from_object: FloatArray
+    lift_m: float
+    max_penetration_m: float
+    grip_force_n: float
+    collision_with: str
+    seal: SealCheck | None
+    sim_time_s: float
+    wall_time_s: float
+    n_pieces: int
+
+    @property
+    def success(self) -> bool:
+        return self.outcome == "held"
+
+    def as_dict(self) -> dict[str, Any]:
+        """Flat JSON-friendly record (floats rounded to 1e-9)."""
+        return {
+            "outcome": self.outcome,
+            "reason": self.reason,
+            "slip_m": round(self.slip_m, 9),
+            "slip_rad": round(self.slip_rad, 9),
+            "offset_x_m": round(float(self.object_offset_m[0]), 9),
+            "offset_y_m": round(float(self.object_offset_m[1]), 9),
+            "offset_z_m": round(float(self.object_offset_m[2]), 9),
+            "lift_m": round(self.lift_m, 9),
+            "max_penetration_m": round(self.max_penetration_m, 9),
+            "grip_force_n": round(self.grip_force_n, 6),
+            "collision_with": self.collision_with,
+            "seal": "" if self.seal is None else ("sealed" if self.seal.sealed else self.seal.reason),
+            "sim_time_s": round(self.sim_time_s, 6),
+        }
+
+
+# -- geometry of bodies -------------------------------------------------------------------------------
+def _fmt(values: Any) -> str:
+    return " ".join(f"{float(v):.12g}" for v in np.asarray(values, dtype=np.float64).reshape(-1))
+
+
+def _quat_wxyz(rotation: FloatArray) -> FloatArray:
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rotation, dtype=np.float64).reshape(-1))
+    return q
+
+
+def _primitive(template: Template) -> tuple[str, FloatArray] | None:
+    """('box', full size) or ('sphere', (r,)) when the mesh is exactly that primitive centred in its frame."""
+    mesh = template.mesh
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    ext = hi - lo
+    centred = bool(np.allclose((lo + hi) / 2.0, 0.0, atol=1e-9 + 1e-6 * float(ext.max())))
+    vol = float(mesh.volume)
+    if centred and abs(vol - float(np.prod(ext))) < 1e-3 * float(np.prod(ext)) and len(v) <= 64:
+        return "box", ext
+    r = float(np.linalg.norm(v, axis=1).max())
+    rmin = float(np.linalg.norm(v, axis=1).min())
+    if centred and r > 0 and rmin > 0.98 * r and abs(vol - 4.0 / 3.0 * np.pi * r**3) < 0.03 * vol:
+        return "sphere", np.array([r])
+    return None
+
+
+def collision_pieces(template: Template, options: DecompositionOptions | None = None) -> list[tuple[str, FloatArray]]:
+    """Collision geometry of a template in its object frame: [('box', size (3,))], [('sphere', (r,))] or
+    [('mesh', hull vertices (K, 3)), ...] from the convex decomposition. Metres."""
+    prim = _primitive(template)
+    if prim is not None:
+        return [prim]
+    pieces = convex_decomposition(
+        np.asarray(template.mesh.vertices, dtype=np.float64), np.asarray(template.mesh.faces), options
+    )
+    return [("mesh", p.vertices) for p in pieces]
+
+
+def _object_body_xml(
+    name: str,
+    template: Template,
+    world_from_object: FloatArray,
+    pieces: list[tuple[str, FloatArray]],
+    friction: float,
+    assets: list[str],
+) -> str:
+    mesh = template.mesh
+    volume = max(float(mesh.volume), 1e-12)
+    inertia = np.asarray(mesh.moment_inertia, dtype=np.float64) * (template.mass_kg / volume)
+    com = np.asarray(mesh.center_mass, dtype=np.float64)
+    eig = np.linalg.eigvalsh(inertia)
+    floor = max(float(eig.max()) * 1e-3, 1e-12)
+    inertia = inertia + np.eye(3) * max(0.0, floor - float(eig.min()))
+    full = _fmt([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]])
+    geoms = []
+    for j, (kind, data) in enumerate(pieces):
+        common = f'name="{name}_g{j}" friction="{friction:.6g} 0.003 0.0001" mass="0"'
+        if kind == "box":
+            geoms.append(f'<geom type="box" size="{_fmt(np.asarray(data) / 2.0)}" {common}/>')
+        elif kind == "sphere":
+            geoms.append(f'<geom type="sphere" size="{float(data[0]):.12g}" {common}/>')
+        else:
+            assets.append(f'<mesh name="{name}_m{j}" vertex="{_fmt(data)}" inertia="convex"/>')
+            geoms.append(f'<geom type="mesh" mesh="{name}_m{j}" {common}/>')
+    pose = world_from_object
+    return (
+        f'<body name="{name}" pos="{_fmt(pose[:3, 3])}" quat="{_fmt(_quat_wxyz(pose[:3, :3]))}">'
+        f'<freejoint name="{name}_free"/>'
+        f'<inertial pos="{_fmt(com)}" mass="{template.mass_kg:.12g}" fullinertia="{full}"/>'
+        f"{''.join(geoms)}</body>"
+    )
+
+
+def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -> tuple[str, str, str]:
+    """(hand body xml, actuator xml, contact-exclude xml) of the mocap-driven hand; the body frame is the TCP."""
+    pos, quat = _fmt(world_from_tcp[:3, 3]), _fmt(_quat_wxyz(world_from_tcp[:3, :3]))
+    grip_friction = f'friction="{spec.finger_friction:.6g} {spec.torsional_friction_m:.6g} 0.0001"'
+    if spec.kind == "parallel":
+        tip = spec.tip_beyond_tcp_m
+        length, width, thick = spec.finger_length_m, spec.finger_width_m, spec.finger_thickness_m
+        half_stroke = spec.stroke_m / 2.0
+        palm_x = spec.stroke_m + 2 * thick + 0.02
+        palm_z = tip - length - spec.palm_depth_m / 2.0
+        fz = tip - length / 2.0
+        band = 0.008  # the servo saturates at the force limit once 8 mm behind its target
+        kp = spec.grip_force_n / band
+        finger_mass = 0.05
+        kv = 2.0 * 0.7 * math.sqrt(kp * finger_mass)
+        fingers = []
+        for side, sign in (("left", -1.0), ("right", 1.0)):
+            x = sign * (half_stroke + thick / 2.0)
+            fingers.append(
+                f'<body name="hand_{side}" gravcomp="1">'
+                f'<joint name="jaw_{side}" type="slide" axis="{-sign:g} 0 0" range="0 {half_stroke:.12g}" '
+                f'damping="{kv:.6g}" limited="true"/>'
+                f'<geom name="hand_{side}_finger" type="box" '
+                f'size="{thick / 2:.12g} {width / 2:.12g} {length / 2:.12g}" '
+                f'pos="{x:.12g} 0 {fz:.12g}" mass="{finger_mass:g}" condim="4" {grip_friction}/></body>'
+            )
+        body = (
+            f'<body name="hand" pos="{pos}" quat="{quat}" gravcomp="1"><freejoint name="hand_free"/>'
+            f'<geom name="hand_palm" type="box" size="{palm_x / 2:.12g} {max(width, 0.04) / 2:.12g} '
+            f'{spec.palm_depth_m / 2:.12g}" pos="0 0 {palm_z:.12g}" condim="3" mass="1"/>'
+            f"{''.join(fingers)}</body>"
+        )
+        limit = half_stroke + band
+        actuators = "".join(
+            f'<position name="drive_{side}" joint="jaw_{side}" kp="{kp:.6g}" ctrlrange="0 {limit:.12g}" '
+            f'forcerange="{-spec.grip_force_n:.6g} {spec.grip_force_n:.6g}"/>'
+            for side in ("left", "right")
+        )
+        exclude = '<exclude body1="hand_left" body2="hand_right"/>'
+        return body, actuators, exclude
+    cup_h = 0.006
+    r = spec.cup_diameter_m / 2.0
+    travel = spec.bellows_travel_m
+    cup_friction = f'friction="{spec.cup_friction:.6g} {spec.torsional_friction_m:.6g} 0.0001"'
+    body = (
+        f'<body name="hand" pos="{pos}" quat="{quat}" gravcomp="1"><freejoint name="hand_free"/>'
+        f'<geom name="hand_tool" type="cylinder" size="{spec.tool_radius_m:.12g} {spec.tool_length_m / 2:.12g}" '
+        f'pos="0 0 {-travel - cup_h - spec.tool_length_m / 2 - 0.002:.12g}" condim="3" mass="1"/>'
+        f'<body name="hand_cup" gravcomp="1">'
+        f'<joint name="bellows" type="slide" axis="0 0 -1" range="0 {travel:.12g}" limited="true" '
+        f'stiffness="{spec.bellows_stiffness_n_m:.6g}" damping="40"/>'
+        f'<geom name="hand_cup_lip" type="cylinder" size="{r:.12g} {cup_h / 2:.12g}" pos="0 0 {-cup_h / 2:.12g}" '
+        f'mass="0.05" condim="4" {cup_friction}/></body></body>'
+    )
+    return body, "", ""
+
+
+# -- validation ---------------------------------------------------------------------------------------
+def _min_jerk(s: float) -> float:
+    s = min(max(s, 0.0), 1.0)
+    return s**3 * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+@dataclass
+class _Monitor:
+    """Contact bookkeeping during the run."""
+
+    groups: np.ndarray  # geom id -> 0 static, 1 target, 2 neighbour, 3 hand
+    names: list[str]
+    max_penetration: float = 0.0
+    collision: str = ""
+
+    def check(self, data: mujoco.MjData, opts: PhysicsOptions, target_counts: bool) -> tuple[bool, float]:
+        """Update penetration / collision state; returns (hand touches target, normal force hand-target)."""
+        n = data.ncon
+        if n == 0:
+            return False, 0.0
+        geom = np.asarray(data.contact.geom[:n])
+        dist = np.asarray(data.contact.dist[:n])
+        adr = np.asarray(data.contact.efc_address[:n])
+        efc = np.asarray(data.efc_force)
+        force = np.zeros(n)
+        active = adr >= 0
+        force[active] = np.abs(efc[adr[active]])
+        g = self.groups[geom]
+        self.max_penetration = max(self.max_penetration, float(max(0.0, -dist.min())))
+        hand = (g == 3).any(axis=1)
+        other = np.where(g[:, 0] == 3, g[:, 1], g[:, 0])
+        touching = hand & (other == 1) & (dist < 0.0005)
+        grip = float(force[touching].sum())
+        bad = hand & ((other == 0) | (other == 2) | ((other == 1) & target_counts))
+        bad &= (force > opts.collision_force_n) | (-dist > opts.collision_penetration_m)
+        if bad.any() and not self.collision:
+            k = int(np.argmax(bad))
+            a, b = geom[k]
+            self.collision = self.names[b] if g[k, 0] == 3 else self.names[a]
+        return bool(touching.any()), grip
+
+
+def validate_grasp(
+    target: Template,
+    world_from_object: FloatArray,
+    neighbours: list[tuple[Template, FloatArray]] | tuple[tuple[Template, FloatArray], ...],
+    static_boxes: list[StaticBox] | tuple[StaticBox, ...],
+    gripper: GripperSpec | Any,
+    world_from_tcp: FloatArray,
+    opening_m: float,
+    options: PhysicsOptions | None = None,
+) -> PhysicsResult:
+    """Replay a pick of `target` (at `world_from_object` (4, 4), its true pose) in MuJoCo and judge it.
+
+    neighbours: other parts with their true poses (free bodies). static_boxes: (name, world_from_box (4, 4),
+    full size (3,)) of the cell (table, bin walls); when empty, a floor is put under the lowest part.
+    gripper: a GripperSpec, or a kinematics Gripper (converted with GripperSpec.from_gripper).
+    world_from_tcp (4, 4): grasp pose (z approach, x closing). opening_m: jaw opening before closing (ignored
+    for suction). Raises InputError for bad poses / openings, SimulationError if MuJoCo rejects the scene or
+    the state diverges.
+    """
+    import mujoco
+
+    t_wall = time.perf_counter()
+    opts = options or PhysicsOptions()
+    spec = gripper if isinstance(gripper, GripperSpec) else GripperSpec.from_gripper(gripper)
+    w_obj = check_pose(world_from_object, "world_from_object", tol=1e-5)
+    w_tcp = check_pose(world_from_tcp, "world_from_tcp", tol=1e-5)
+    if spec.kind == "parallel" and not (0.0 < opening_m <= spec.stroke_m + 1e-9):
+        raise InputError(
+            f"opening_m must be in (0, {spec.stroke_m}] for gripper {spec.name!r}, got {opening_m!r}; "
+            "choose a grasp whose width fits the stroke"
+        )
+
+    # the scene
+    assets: list[str] = []
+    bodies = []
+    target_pieces = collision_pieces(target, opts.decomposition)
+    bodies.append(_object_body_xml("target", target, w_obj, target_pieces, opts.object_friction, assets))
+    centre = w_obj[:3, :3] @ np.asarray(target.mesh.bounding_sphere.primitive.center) + w_obj[:3, 3]
+    kept = 0
+    lowest = float((np.asarray(target.mesh.vertices) @ w_obj[:3, :3].T + w_obj[:3, 3])[:, 2].min())
+    for i, (tmpl, pose_in) in enumerate(neighbours):
+        pose = check_pose(pose_in, f"neighbours[{i}] pose", tol=1e-5)
+        sphere = tmpl.mesh.bounding_sphere.primitive
+        c = pose[:3, :3] @ np.asarray(sphere.center) + pose[:3, 3]
+        if np.linalg.norm(c - centre) - float(sphere.radius) > opts.neighbour_radius_m:
+            continue
+        kept += 1
+        lowest = min(lowest, float((np.asarray(tmpl.mesh.vertices) @ pose[:3, :3].T + pose[:3, 3])[:, 2].min()))
+        pieces = collision_pieces(tmpl, opts.decomposition)
+        bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets))
+    statics = []
+    sf = f'friction="{opts.static_friction:.6g} 0.003 0.0001"'
+    for k, (name, pose_in, size_in) in enumerate(static_boxes):
+        pose = check_pose(pose_in, f"static box {name!r} pose", tol=1e-5)
+        size = as_float_array(size_in, f"static box {name!r} size", (3,))
+        statics.append(
+            f'<geom name="static{k}_{_safe(name)}" type="box" size="{_fmt(size / 2.0)}" pos="{_fmt(pose[:3, 3])}" '
+            f'quat="{_fmt(_quat_wxyz(pose[:3, :3]))}" {sf}/>'
+        )
+    if not statics:
+        statics.append(f'<geom name="static_floor" type="plane" size="0 0 1" pos="0 0 {lowest:.12g}" {sf}/>')
+    pre = w_tcp @ make_pose(translation=[0.0, 0.0, -opts.approach_m])
+    opening = min(opening_m, spec.stroke_m) if spec.kind == "parallel" else 0.0
+    hand, actuators, exclude = _hand_xml(spec, pre, opening)
+    vacuum_eq = (
+        '<weld name="vacuum" body1="hand_cup" body2="target" active="false" solref="0.004 1"/>'
+        if spec.kind == "suction"
+        else ""
+    )
+    xml = (
+        '<mujoco model="grasp_check"><compiler angle="radian" boundmass="1e-6" boundinertia="1e-12"/>'
+        f'<option timestep="{opts.timestep_s:.12g}" integrator="implicitfast" cone="elliptic" impratio="10">'
+        '<flag multiccd="enable"/></option>'
+        '<default><geom solref="0.004 1" solimp="0.95 0.99 0.001"/></default>'
+        f"<asset>{''.join(assets)}</asset>"
+        f"<worldbody>{''.join(statics)}{''.join(bodies)}{hand}"
+        f'<body name="hand_mocap" mocap="true" pos="{_fmt(pre[:3, 3])}" quat="{_fmt(_quat_wxyz(pre[:3, :3]))}"/>'
+        "</worldbody>"
+        '<equality><weld body1="hand" body2="hand_mocap" relpose="0 0 0 1 0 0 0" solref="0.005 1"/>'
+        f"{vacuum_eq}</equality>"
+        f"<contact>{exclude}</contact><actuator>{actuators}</actuator></mujoco>"
+    )
+    try:
+        model = mujoco.MjModel.from_xml_string(xml)
+    except ValueError as exc:
+        raise SimulationError(f"MuJoCo rejected the grasp-check scene: {exc}") from exc
+    data = mujoco.MjData(model)
+
+    groups = np.zeros(model.ngeom, dtype=np.int64)
+    names = []
+    hand_body = model.body("hand").id
+    target_body = model.body("target").id
+    for gid in range(model.ngeom):
+        body = int(model.geom_bodyid[gid])
+        root = int(model.body_rootid[body])
+        if body == target_body:
+            groups[gid] = 1
+        elif root == hand_body:
+            groups[gid] = 3
+        elif body != 0:
+            groups[gid] = 2
+        names.append(model.geom(gid).name or f"geom{gid}")
+    monitor = _Monitor(groups, names)
+
+    if spec.kind == "parallel":
+        q0 = min(max((spec.stroke_m - opening) / 2.0, 0.0), spec.stroke_m / 2.0)
+        for side in ("left", "right"):
+            data.qpos[model.joint(f"jaw_{side}").qposadr[0]] = q0
+            data.ctrl[model.actuator(f"drive_{side}").id] = q0
+    mujoco.mj_forward(model, data)
+
+    quat = _quat_wxyz(w_tcp[:3, :3])
+    mocap = int(model.body("hand_mocap").mocapid[0])
+    data.mocap_quat[mocap] = quat
+    dt = opts.timestep_s
+    seal: SealCheck | None = None
+    if spec.kind == "suction":
+        import trimesh
+
+        mesh_world = trimesh.Trimesh(
+            vertices=np.asarray(target.mesh.vertices) @ w_obj[:3, :3].T + w_obj[:3, 3],
+            faces=np.asarray(target.mesh.faces),
+            process=False,
+        )
+        seal = check_seal(mesh_world, w_tcp, spec.cup_diameter_m, opts.seal)
+
+    grasp_pos = w_tcp[:3, 3].copy()
+    approach_dir = w_tcp[:3, 2].copy()
+    start_pos = pre[:3, 3].copy()
+    end_approach = grasp_pos + (approach_dir * opts.press_m if spec.kind == "suction" else 0.0)
+    if spec.kind == "parallel":
+        close_s = (opening / 2.0 + 0.008) / (spec.closing_speed_m_s / 2.0)
+    else:
+        close_s = 0.05
+    phases = [
+        ("settle", opts.settle_s),
+        ("approach", opts.approach_s),
+        ("close", close_s + opts.close_hold_s),
+        ("lift", opts.lift_s),
+        ("move", opts.move_s),
+        ("hold", opts.hold_s),
+    ]
+    lift_vec = np.array([0.0, 0.0, opts.lift_m])
+    move_vec = np.array([opts.move_m, 0.0, 0.0])
+    target_qadr = model.joint("target_free").qposadr[0]
+    z0 = float(data.qpos[target_qadr + 2])
+    ref_body = "hand_cup" if spec.kind == "suction" else "hand"
+    gripped_ref = np.eye(4)
+    tcp_from_obj0 = invert_pose(w_tcp) @ w_obj
+    vacuum = _Vacuum(spec, seal, w_tcp[:3, 2].copy()) if seal is not None and seal.sealed else None
+    in_hand_after_close = False
+    grip_force = 0.0
+    touching = False
+    step = 0
+    for phase, duration in phases:
+        n_steps = max(1, int(round(duration / dt)))
+        for k in range(n_steps):
+            s = (k + 1) / n_steps
+            if phase == "settle":
+                pos = start_pos
+            elif phase == "approach":
+                pos = start_pos + (end_approach - start_pos) * _min_jerk(s)
+            elif phase == "close":
+                pos = end_approach
+                if spec.kind == "parallel":
+                    target_q = q0 + spec.closing_speed_m_s / 2.0 * (k + 1) * dt
+                    for side in ("left", "right"):
+                        data.ctrl[model.actuator(f"drive_{side}").id] = min(target_q, spec.stroke_m / 2.0 + 0.008)
+                elif vacuum is not None and not vacuum.attached and touching and k >= n_steps // 2:
+                    vacuum.attach(model, data)
+            elif phase == "lift":
+                pos = end_approach + lift_vec * _min_jerk(s)
+            elif phase == "move":
+                pos = end_approach + lift_vec + move_vec * _min_jerk(s)
+            else:
+                pos = end_approach + lift_vec + move_vec
+            data.mocap_pos[mocap] = pos
+            mujoco.mj_step(model, data)
+            step += 1
+            if step % opts.check_every == 0 or k == n_steps - 1:
+                touching, force = monitor.check(data, opts, target_counts=phase in ("settle", "approach"))
+                if vacuum is not None:
+                    vacuum.check(model, data, opts.check_every)
+                    touching = vacuum.attached if phase != "close" or vacuum.attached else touching
+                    force = vacuum.pull_n if vacuum.attached else force
+                if phase == "close" and k == n_steps - 1:
+                    grip_force = force
+        if not np.all(np.isfinite(data.qpos)):
+            raise SimulationError(f"the grasp simulation diverged during {phase!r}; reduce timestep_s")
+        if phase == "close":
+            in_hand_after_close = touching
+            gripped_ref = _frame_from_object(data, model, ref_body)
+    # slip: motion of the part relative to what holds it (the hand, or the cup on its bellows)
+    final_ref = _frame_from_object(data, model, ref_body)
+    slip_m = float(np.linalg.norm(final_ref[:3, 3] - gripped_ref[:3, 3]))
+    slip_rad = rotation_angle(final_ref[:3, :3] @ gripped_ref[:3, :3].T)
+    final = _frame_from_object(data, model, "hand")
+    delta = final[:3, 3] - tcp_from_obj0[:3, 3]
+    lift = float(data.qpos[target_qadr + 2]) - z0
+
+    if monitor.collision:
+        outcome, reason = "collision", f"the hand hit {monitor.collision}"
+    elif vacuum is not None and vacuum.released_by:
+        outcome, reason = "drop", f"the vacuum let go: {vacuum.released_by}"
+    elif not in_hand_after_close:
+        outcome, reason = "missed", "the gripper closed without touching the target"
+        if seal is not None and not seal.sealed:
+            outcome, reason = "drop", f"no vacuum seal ({seal.reason})"
+    elif not touching or lift < 0.5 * opts.lift_m:
+        outcome = "drop"
+        reason = "the target fell out of the hand" if touching is False else "the target was not lifted"
+        if seal is not None and not seal.sealed:
+            reason = f"no vacuum seal ({seal.reason})"
+    elif slip_m > opts.slip_tolerance_m or slip_rad > opts.slip_tolerance_rad:
+        outcome, reason = (
+            "slip",
+            f"the target moved {slip_m * 1e3:.1f} mm / {math.degrees(slip_rad):.1f} deg in the hand",
+        )
+    else:
+        outcome, reason = "held", ""
+    sim_time = step * dt
+    result = PhysicsResult(
+        outcome=outcome,
+        reason=reason,
+        slip_m=slip_m,
+        slip_rad=slip_rad,
+        object_offset_m=delta,
+        tcp_from_object=final,
+        lift_m=lift,
+        max_penetration_m=monitor.max_penetration,
+        grip_force_n=grip_force,
+        collision_with=monitor.collision,
+        seal=seal,
+        sim_time_s=sim_time,
+        wall_time_s=time.perf_counter() - t_wall,
+        n_pieces=len(target_pieces),
+    )
+    logger.debug("grasp on %s: %s (%s), %d neighbours simulated", target.name, outcome, reason, kept)
+    return result
+
+
+class _Vacuum:
+    """A sealed cup as a breakable weld between cup and target, released when the wrench it carries exceeds
+    what the vacuum can hold (Dex-Net 3.0 style limits): with V = pressure x area x efficiency and the pull
+    F_n (away from the cup), the seal holds while F_n <= V, shear <= mu (V - F_n), torsion <= mu (V - F_n) 2r/3
+    and the peeling moment about the cup centre <= (V - F_n) r, each for no longer than 10 ms."""
+
+    def __init__(self, spec: GripperSpec, seal: SealCheck, axis_world: FloatArray) -> None:
+        self.force = spec.vacuum_force_n
+        self.mu = spec.cup_friction
+        self.r = spec.cup_diameter_m / 2.0
+        self.axis_world = axis_world
+        self.attached = False
+        self.released_by = ""
+        self.pull_n = 0.0
+        self._violation_steps = 0
+
+    def attach(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
+        import mujoco
+
+        eq = model.equality("vacuum").id
+        cup = model.body("hand_cup").id
+        tgt = model.body("target").id
+        r1 = data.xmat[cup].reshape(3, 3)
+        r2 = data.xmat[tgt].reshape(3, 3)
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, (r1.T @ r2).reshape(-1))
+        model.eq_data[eq, 0:3] = 0.0
+        model.eq_data[eq, 3:6] = r1.T @ (data.xpos[tgt] - data.xpos[cup])
+        model.eq_data[eq, 6:10] = quat
+        data.eq_active[eq] = 1
+        self.attached = True
+
+    def check(self, model: mujoco.MjModel, data: mujoco.MjData, steps: int) -> None:
+        """Compare the weld's wrench on the target with the vacuum's limits; release after 10 ms over them."""
+        if not self.attached:
+            return
+        eq = model.equality("vacuum").id
+        rows = np.nonzero((np.asarray(data.efc_type) == 0) & (np.asarray(data.efc_id) == eq))[0]
+        if len(rows) != 6:
+            return
+        efc = np.asarray(data.efc_force)[rows]
+        cup = model.body("hand_cup").id
+        tgt = model.body("target").id
+        force = -efc[:3]  # on the target, world frame
+        r_tgt = data.xmat[tgt].reshape(3, 3)
+        torque = r_tgt @ (-efc[3:] / 2.0)  # on the target about its origin, world frame
+        centre = data.xpos[cup]  # the cup face centre (body origin = lip face)
+        torque_c = torque + np.cross(data.xpos[tgt] - centre, force)
+        z = data.xmat[cup].reshape(3, 3)[:, 2]
+        pull = -float(force @ z)  # cup pulling the part towards itself (z points into the part)
+        shear = float(np.linalg.norm(force + pull * z))
+        torsion = abs(float(torque_c @ z))
+        peel = float(np.linalg.norm(torque_c - (torque_c @ z) * z))
+        self.pull_n = pull
+        press = self.force - max(pull, 0.0)
+        why = ""
+        if pull > self.force:
+            why = f"pull {pull:.1f} N > vacuum {self.force:.1f} N"
+        elif shear > self.mu * press:
+            why = f"shear {shear:.1f} N > {self.mu * press:.1f} N"
+        elif torsion > self.mu * press * 2.0 * self.r / 3.0:
+            why = f"torsion {torsion:.3f} N m over the lip's friction"
+        elif peel > press * self.r:
+            why = f"peeling moment {peel:.3f} N m > {press * self.r:.3f} N m"
+        if not why:
+            self._violation_steps = 0
+            return
+        self._violation_steps += steps
+        if self._violation_steps * model.opt.timestep >= 0.01:
+            data.eq_active[eq] = 0
+            self.attached = False
+            self.released_by = why
+
+
+def _frame_from_object(data: mujoco.MjData, model: mujoco.MjModel, frame_body: str) -> FloatArray:
+    """(4, 4) pose of the target in the frame of body `frame_body` (the hand = TCP, or the suction cup)."""
+    tgt = model.body("target").id
+    ref = model.body(frame_body).id
+    world_from_obj = make_pose(np.asarray(data.xmat[tgt]).reshape(3, 3), np.asarray(data.xpos[tgt]))
+    world_from_ref = make_pose(np.asarray(data.xmat[ref]).reshape(3, 3), np.asarray(data.xpos[ref]))
+    return invert_pose(world_from_ref) @ world_from_obj
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in str(name))
