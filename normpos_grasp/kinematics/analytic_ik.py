@@ -30,16 +30,22 @@ def dh_lengths(params: URParams) -> tuple[float, float, float, float, float, flo
     return (params.d[0], params.a[1], params.a[2], params.d[3], params.d[4], params.d[5])
 
 
-def _acos(x: float) -> float | None:
-    if x > 1.0 + _ACOS_SLACK or x < -1.0 - _ACOS_SLACK:
+def _acos(x: float, slack: float = _ACOS_SLACK) -> float | None:
+    if x > 1.0 + slack or x < -1.0 - slack:
         return None
     return math.acos(min(1.0, max(-1.0, x)))
 
 
 def ik_single(
-    lengths: tuple[float, float, float, float, float, float], pose: list[list[float]], q6_default: float = 0.0
+    lengths: tuple[float, float, float, float, float, float],
+    pose: list[list[float]],
+    q6_default: float = 0.0,
+    slack: float = _ACOS_SLACK,
 ) -> tuple[list[tuple[float, ...] | None], str]:
     """The 8 closed-form solutions of one base_from_flange pose (nested lists, 4x4), scalar math.
+
+    `slack`: acos arguments up to 1 + slack are clamped (larger values give approximate seeds for targets
+    just outside the nominal workspace, e.g. for a calibrated arm).
 
     Returns (solutions, reason): solutions[i] is a 6-tuple of radians or None where branch i has no
     solution; reason is '' when some solution exists, else 'out_of_reach'.
@@ -51,7 +57,7 @@ def ik_single(
     out: list[tuple[float, ...] | None] = [None] * 8
     if r <= 0.0:
         return out, "out_of_reach"
-    phi = _acos(d4 / r)
+    phi = _acos(d4 / r, slack)
     if phi is None:
         return out, "out_of_reach"
     base = math.atan2(p05x, -p05y)
@@ -61,7 +67,7 @@ def ik_single(
         t1 = base + phi if si == 0 else base - phi
         t1 = math.remainder(t1, _TWO_PI)
         c1, s1 = math.cos(t1), math.sin(t1)
-        t5a = _acos((px * s1 - py * c1 - d4) / d6)
+        t5a = _acos((px * s1 - py * c1 - d4) / d6, slack)
         if t5a is None:
             continue
         n_c = nx * c1 + ny * s1
@@ -81,7 +87,7 @@ def ik_single(
             x04y = c5 * (nz * c6 - oz * s6) - az * s5
             p13x = d5 * (s6 * n_c + c6 * o_c) - d6 * a_c + px * c1 + py * s1
             p13y = pz - d1 - d6 * az + d5 * (oz * c6 + nz * s6)
-            t3a = _acos((p13x * p13x + p13y * p13y - aa) / a2a3)
+            t3a = _acos((p13x * p13x + p13y * p13y - aa) / a2a3, slack)
             if t3a is None:
                 continue
             for ei in range(2):

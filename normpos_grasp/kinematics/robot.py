@@ -35,6 +35,8 @@ logger = logging.getLogger(__name__)
 
 ROBOT_NAMES = ("ur3e", "ur5e", "ur10e", "ur16e", "ur20", "ur30")
 _TWO_PI = 2.0 * math.pi
+_CALIBRATED_SLACK = 0.05  # acos clamp for seeds of a calibrated arm (targets just outside the nominal workspace)
+_SINGULAR_NEAR = 1e-5  # |sin| (or shoulder angle, rad) below which closed-form solutions get Newton-polished
 
 
 @dataclass(frozen=True)
@@ -293,46 +295,59 @@ class Robot:
             raise InputError(f"base_from_flange: rotation is not orthonormal (error {err:.2e}) or last row wrong")
         return pose
 
-    def _principal(self, pose: FloatArray, q6_default: float, options: IKOptions) -> tuple[FloatArray, str]:
-        """Distinct principal solutions (k, 6) in (-pi, pi], refined on the calibrated chain if needed."""
-        sols, reason = ik_single(self._lengths, pose.tolist(), q6_default)
+    def _principal(
+        self, pose: FloatArray, q6_default: float, options: IKOptions, near: FloatArray | None = None
+    ) -> tuple[FloatArray, str]:
+        """Distinct principal solutions (k, 6) in (-pi, pi]. Refined by Newton steps on the calibrated chain,
+        or on the nominal one near a singularity, where acos/atan2 lose digits (errors up to ~1e-8)."""
+        slack = _CALIBRATED_SLACK if self.calibrated else 1e-10
+        sols, reason = ik_single(self._lengths, pose.tolist(), q6_default, slack)
         found = [s for s in sols if s is not None]
+        if self.calibrated and near is not None:
+            found.append(tuple(near))  # near the nominal workspace boundary two branches share one clamped seed
         if not found:
             return np.empty((0, 6)), reason
         q = np.array(found)
         if self.calibrated:
-            q = self._refine(q, pose, options)
+            q, ok = self._refine(q, pose, options)
+            q = q[ok]
             if q.shape[0] == 0:
-                return q, "not_converged"
+                nominal = ik_single(self._lengths, pose.tolist(), q6_default)[1]
+                return q, nominal or "not_converged"  # outside even the nominal workspace: out_of_reach
             q = q - _TWO_PI * np.round(q / _TWO_PI)
+        else:
+            d4, d6 = self._lengths[3], self._lengths[5]
+            r = math.hypot(pose[0, 3] - d6 * pose[0, 2], pose[1, 3] - d6 * pose[1, 2])
+            shoulder = math.acos(min(1.0, d4 / r)) < _SINGULAR_NEAR
+            near = shoulder | (np.abs(np.sin(q[:, 2])) < _SINGULAR_NEAR) | (np.abs(np.sin(q[:, 4])) < _SINGULAR_NEAR)
+            if near.any():
+                q[near] = self._refine(q[near], pose, options)[0]
+                q = q - _TWO_PI * np.round(q / _TWO_PI)
         close = np.abs(q[:, None, :] - q[None, :, :]).max(axis=2) <= options.dedupe_tol
         duplicate = np.triu(close, k=1).any(axis=0)  # same as an earlier solution
         return q[~duplicate], ""
 
-    def _refine(self, seeds: FloatArray, target: FloatArray, options: IKOptions) -> FloatArray:
-        """Newton steps on the calibrated chain from each seed; returns the converged ones."""
+    def _refine(self, seeds: FloatArray, target: FloatArray, options: IKOptions) -> tuple[FloatArray, BoolArray]:
+        """Gauss-Newton steps (least squares: safe at singular Jacobians) from each seed (k, 6) on this robot's
+        chain; returns the refined configurations and whether each converged to options.newton_tol."""
         st = self._pin
         goal = pin.SE3(target[:3, :3].copy(), target[:3, 3].copy())
-        out = []
-        for seed in seeds:
+        out = seeds.copy()
+        ok = np.zeros(len(seeds), dtype=bool)
+        for k, seed in enumerate(seeds):
             q = seed.copy()
-            for _ in range(options.newton_iterations):
+            for _ in range(options.newton_iterations + 1):
                 pin.framesForwardKinematics(st.model, st.data, q)
                 err = pin.log6(st.data.oMf[st.flange_id].actInv(goal)).vector
                 if np.abs(err).max() < options.newton_tol:
-                    out.append(q)
+                    ok[k] = True
                     break
                 jac = pin.computeFrameJacobian(st.model, st.data, q, st.flange_id, pin.LOCAL)
-                try:
-                    q = q + np.linalg.solve(jac, err)
-                except np.linalg.LinAlgError:
-                    break
+                q = q + np.linalg.lstsq(jac, err, rcond=1e-10)[0]
             else:
-                pin.framesForwardKinematics(st.model, st.data, q)
-                err = pin.log6(st.data.oMf[st.flange_id].actInv(goal)).vector
-                if np.abs(err).max() < 1e3 * options.newton_tol:
-                    out.append(q)
-        return np.array(out).reshape(-1, 6)
+                ok[k] = bool(np.abs(err).max() < 1e3 * options.newton_tol)
+            out[k] = q
+        return out, ok
 
     def _branches(self, q: FloatArray, q_near: FloatArray | None, all_branches: bool) -> FloatArray:
         """Expand principal solutions (k, 6) into every +-2 pi copy inside the limits (or the copy nearest
@@ -351,8 +366,8 @@ class Robot:
             dist[~ok] = np.inf
             best = np.argmin(dist, axis=1)
             keep = np.isfinite(dist[np.arange(q.shape[0]), best])
-            return cand[np.arange(q.shape[0]), best][keep]
-        return cand[ok]
+            return np.clip(cand[np.arange(q.shape[0]), best][keep], self._lower, self._upper)
+        return np.clip(cand[ok], self._lower, self._upper)  # removes the 1e-12 slack
 
     def ik(
         self, base_from_flange: ArrayLike, q_near: ArrayLike | None = None, options: IKOptions | None = None
@@ -364,7 +379,7 @@ class Robot:
         pose = self._check_target(base_from_flange)
         near = None if q_near is None else self._q(q_near)
         q6 = 0.0 if near is None else float(near[5])
-        principal, _ = self._principal(pose, q6, opts)
+        principal, _ = self._principal(pose, q6, opts, near)
         sols = self._branches(principal, near, opts.all_branches)
         ref = near if near is not None else np.zeros(6)
         order = np.argsort(np.linalg.norm(sols - ref, axis=1), kind="stable")
@@ -378,7 +393,7 @@ class Robot:
         opts = options or IKOptions()
         pose = self._check_target(base_from_flange)
         near = None if q_near is None else self._q(q_near)
-        principal, reason = self._principal(pose, 0.0 if near is None else float(near[5]), opts)
+        principal, reason = self._principal(pose, 0.0 if near is None else float(near[5]), opts, near)
         if principal.shape[0] == 0:
             if reason == "not_converged":
                 raise NoIKSolution(

@@ -59,11 +59,11 @@ _UR5E_D4, _UR5E_D5 = 0.1333, 0.0997
 
 def _scaled_geometry(footprint_diameter: float, d1: float, d4: float, d5: float) -> LinkGeometry:
     """Collision sizes scaled from the UR5e: radii of the big joints by footprint ratio, lateral offsets by d4
-    ratio, wrist radius by d5 ratio, base height 0.5 d1. Rounded to the millimetre."""
+    ratio, wrist radius by d5 ratio, base height 0.5 d1. Rounded to 0.1 mm."""
     big = footprint_diameter / _UR5E_FOOTPRINT_DIAMETER
     lat = d4 / _UR5E_D4
     small = d5 / _UR5E_D5
-    r = lambda v: round(v, 3)  # noqa: E731
+    r = lambda v: round(v, 4)  # noqa: E731
     return LinkGeometry(
         footprint_radius=r(footprint_diameter / 2.0),
         base_height=r(0.5 * d1),
