@@ -41,6 +41,8 @@ class DriftOptions:
         search_radius_px: how far from its calibrated pixel a point is searched for, pixels.
         min_match_score: lowest normalised cross-correlation accepted as a match (0..1).
         pixel_tolerance_px: points that moved more than this are named in the error.
+        min_peak_margin: a match is ambiguous (skipped) when a second correlation peak, more than 3 px away,
+            comes within this margin of the best (repetitive texture such as a checkerboard).
     """
 
     max_translation_mm: float = 2.0
@@ -50,6 +52,7 @@ class DriftOptions:
     search_radius_px: int = 40
     min_match_score: float = 0.8
     pixel_tolerance_px: float = 1.0
+    min_peak_margin: float = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -246,6 +249,11 @@ def locate_reference_points(
         res = np.asarray(cv2.matchTemplate(gray[y0:y1, x0:x1], patch, cv2.TM_CCOEFF_NORMED), np.float64)
         _, score, _, (mx, my) = cv2.minMaxLoc(res)
         if score < opts.min_match_score:
+            continue
+        others = res.copy()
+        others[max(my - 3, 0) : my + 4, max(mx - 3, 0) : mx + 4] = -1.0
+        if float(others.max(initial=-1.0)) > score - opts.min_peak_margin:
+            logger.warning("reference point %s matches ambiguously (repetitive texture); skipped", reference.names[i])
             continue
         dx = _parabola(res, my, mx, axis=1)
         dy = _parabola(res, my, mx, axis=0)
