@@ -1,0 +1,519 @@
+"""`CollisionWorld`: the cell as python-fcl sees it, and the collision queries the planner runs.
+
+Contents by category, each in its own broad-phase manager so a hit names what was hit:
+'cell' (table, bin walls, conveyor, fixtures, camera mount: boxes), 'object' (fitted objects: BVH meshes of their
+templates), 'clutter' (measured points that no accepted fit explains: voxel boxes, so unknown clutter is never
+ignored). The arm (`ArmModel`, links posed from FK), the tool at a given opening and a held object are the moving
+parts. Collision queries stop at the first contact (early-exit callback); distance queries are offered for reports
+but cost 15-100x a collision test, so the planner checks clearances with inflated shapes instead.
+Call `update()` after moving world objects (the planner does when it changes the target).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import fcl
+import numpy as np
+
+from normpos_grasp.errors import InputError
+from normpos_grasp.typing import ArrayLike, FloatArray
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from normpos_grasp.collision.tool import ToolModel
+    from normpos_grasp.planning.arm import ArmModel
+
+logger = logging.getLogger(__name__)
+
+CATEGORIES = ("cell", "object", "clutter")
+
+
+@dataclass(frozen=True)
+class Hit:
+    """First contact found: `part` is the moving part ('arm', 'tool', 'held', 'self'), `what` the category hit
+    ('cell', 'object', 'clutter', 'arm', 'tool') and `name` the element when known ('' otherwise)."""
+
+    part: str
+    what: str
+    name: str = ""
+
+    @property
+    def reason(self) -> str:
+        """Rejection reason: 'collision_<what>' (self-collision: 'collision_self')."""
+        return "collision_self" if self.part == "self" else f"collision_{self.what}"
+
+
+_REQUEST = fcl.CollisionRequest(num_max_contacts=1)
+
+
+def _tf(pose: FloatArray) -> fcl.Transform:
+    return fcl.Transform(pose[:3, :3], pose[:3, 3])
+
+
+def _first_contact(o1: Any, o2: Any, cdata: Any) -> bool:
+    """Early-exit callback: stop the broad phase at the first colliding pair."""
+    if cdata.done:
+        return True
+    fcl.collide(o1, o2, cdata.request, cdata.result)
+    if cdata.result.is_collision:
+        cdata.done = True
+    return bool(cdata.done)
+
+
+def _geometry(kind: str, size: Any) -> Any:
+    """fcl geometry of a primitive: box (full extents), capsule / cylinder (radius, length), sphere (radius)."""
+    v = [float(x) for x in size]
+    if kind == "box":
+        return fcl.Box(v[0], v[1], v[2])
+    if kind == "capsule":
+        return fcl.Capsule(v[0], v[1])
+    if kind == "cylinder":
+        return fcl.Cylinder(v[0], v[1])
+    if kind == "sphere":
+        return fcl.Sphere(v[0])
+    raise InputError(f"unknown primitive kind {kind!r}; expected box, capsule, cylinder or sphere")
+
+
+def bvh_from_mesh(vertices: ArrayLike, faces: ArrayLike) -> fcl.BVHModel:
+    """An fcl BVH model of a triangle mesh (vertices (V, 3) m, faces (F, 3))."""
+    model = fcl.BVHModel()
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    model.beginModel(len(v), len(f))
+    model.addSubModel(v, f)
+    model.endModel()
+    return model
+
+
+@dataclass
+class _Element:
+    name: str
+    category: str
+    obj: fcl.CollisionObject
+    geom: Any
+    lo: FloatArray
+    hi: FloatArray
+
+
+def bounding_radius(kind: str, size: Any) -> float:
+    """Radius of the sphere about a primitive's centre that encloses it, m."""
+    v = [float(x) for x in size]
+    if kind == "box":
+        return 0.5 * float(np.linalg.norm(v[:3]))
+    if kind == "capsule":
+        return v[0] + v[1] / 2.0
+    if kind == "cylinder":
+        return float(np.hypot(v[0], v[1] / 2.0))
+    return v[0]
+
+
+@dataclass
+class CollisionWorld:
+    """Static cell, fitted objects and clutter in broad-phase managers; arm, tool and held object as movers.
+
+    Build with `add_box`, `add_mesh`, `add_points`; then `set_arm`, `set_tool`. Query with `check_tool`,
+    `check_arm`, `check_config`. `disable(name)` / `enable(name)` take an element out of the queries (the target
+    object while its own grasp is checked) without rebuilding.
+    """
+
+    elements: dict[str, _Element] = field(default_factory=dict)
+    _managers: dict[str, fcl.DynamicAABBTreeCollisionManager] = field(default_factory=dict)
+    _all: fcl.DynamicAABBTreeCollisionManager | None = None
+    _lo: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    _hi: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    _bounds_dirty: bool = False
+    _dirty: set[str] = field(default_factory=lambda: set(CATEGORIES))
+    _disabled: set[str] = field(default_factory=set)
+    arm: ArmModel | None = None
+    tool: ToolModel | None = None
+    _arm_objs: list[fcl.CollisionObject] = field(default_factory=list)
+    _tool_objs: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
+    _tool_objs_inflated: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
+    _tool_radii: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _tool_radii_inflated: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _arm_radii: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _pair_mask: Any = None
+    _low_links: Any = None
+    _tool_centres: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    _held: tuple[str, fcl.CollisionObject, FloatArray] | None = None
+    _held_radius: float = 0.0
+    _mesh_cache: dict[int, fcl.BVHModel] = field(default_factory=dict)
+    n_checks: int = 0
+
+    # -- building -----------------------------------------------------------------------------------------------
+    def add_box(self, name: str, world_from_box: ArrayLike, size: ArrayLike, category: str = "cell") -> None:
+        """Add a box of full extents `size` (3,) m at `world_from_box` (4, 4)."""
+        ext = np.asarray(size, dtype=np.float64).reshape(3)
+        if np.any(ext <= 0):
+            raise InputError(f"box {name!r}: extents must be positive, got {ext.tolist()}")
+        geom = fcl.Box(*ext)
+        pose = np.asarray(world_from_box, dtype=np.float64)
+        half = np.abs(pose[:3, :3]) @ (ext / 2.0)
+        self._add(name, category, geom, pose, pose[:3, 3] - half, pose[:3, 3] + half)
+
+    def add_mesh(self, name: str, mesh: trimesh.Trimesh, world_from_mesh: ArrayLike, category: str = "object") -> None:
+        """Add a triangle mesh (metres) as a BVH model; meshes are shared between instances of one template."""
+        key = id(mesh)
+        geom = self._mesh_cache.get(key)
+        if geom is None:
+            geom = bvh_from_mesh(mesh.vertices, mesh.faces)
+            self._mesh_cache[key] = geom
+        pose = np.asarray(world_from_mesh, dtype=np.float64)
+        verts = np.asarray(mesh.vertices, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        self._add(name, category, geom, pose, verts.min(axis=0), verts.max(axis=0))
+
+    def add_points(self, name: str, points: ArrayLike, voxel_m: float = 0.01, category: str = "clutter") -> int:
+        """Add measured points (N, 3) m as occupied voxel boxes of edge `voxel_m`; returns the voxel count."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            return 0
+        if voxel_m <= 0:
+            raise InputError(f"voxel_m must be positive, got {voxel_m}")
+        keys = np.unique(np.floor(pts / voxel_m).astype(np.int64), axis=0)
+        box = fcl.Box(voxel_m, voxel_m, voxel_m)
+        for i, key in enumerate(keys):
+            pose = np.eye(4)
+            pose[:3, 3] = (key + 0.5) * voxel_m
+            self._add(f"{name}/{i}", category, box, pose, key * voxel_m, (key + 1) * voxel_m)
+        return len(keys)
+
+    def _add(self, name: str, category: str, geom: Any, pose: FloatArray, lo: FloatArray, hi: FloatArray) -> None:
+        if category not in CATEGORIES:
+            raise InputError(f"category must be one of {CATEGORIES}, got {category!r}")
+        if name in self.elements:
+            raise InputError(f"world element {name!r} already exists; names must be unique")
+        obj = fcl.CollisionObject(geom, _tf(pose))
+        self.elements[name] = _Element(
+            name, category, obj, geom, np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        )
+        self._dirty.add(category)
+
+    def remove(self, name: str) -> None:
+        """Remove an element by name."""
+        el = self.elements.pop(name, None)
+        if el is not None:
+            self._dirty.add(el.category)
+
+    def move(self, name: str, world_from_element: ArrayLike) -> None:
+        """Move an element; the managers are refreshed at the next query (`update`)."""
+        el = self.elements[name]
+        pose = np.asarray(world_from_element, dtype=np.float64)
+        old = el.obj.getTransform()
+        old_pose = np.eye(4)
+        old_pose[:3, :3] = old.getRotation()
+        old_pose[:3, 3] = old.getTranslation()
+        delta = pose @ np.linalg.inv(old_pose)
+        corners = (
+            np.array(
+                [[x, y, z] for x in (el.lo[0], el.hi[0]) for y in (el.lo[1], el.hi[1]) for z in (el.lo[2], el.hi[2])]
+            )
+            @ delta[:3, :3].T
+            + delta[:3, 3]
+        )
+        el.lo, el.hi = corners.min(axis=0), corners.max(axis=0)
+        el.obj.setTransform(_tf(pose))
+        self._bounds_dirty = True
+        mgr = self._managers.get(el.category)
+        if mgr is not None and el.category not in self._dirty and name not in self._disabled:
+            mgr.update(el.obj)
+
+    def disable(self, *names: str) -> None:
+        """Leave the named elements out of queries until `enable`."""
+        new = {n for n in names if n in self.elements} - self._disabled
+        self._disabled |= new
+        self._dirty |= {self.elements[n].category for n in new}
+
+    def enable(self, *names: str) -> None:
+        back = self._disabled & set(names)
+        self._disabled -= back
+        self._dirty |= {self.elements[n].category for n in back if n in self.elements}
+
+    def update(self) -> None:
+        """(Re)build the broad-phase managers of the categories that changed (added, removed, disabled)."""
+        for cat in CATEGORIES:
+            if cat not in self._dirty:
+                continue
+            objs = [e.obj for e in self.elements.values() if e.category == cat and e.name not in self._disabled]
+            self._managers.pop(cat, None)
+            if objs:
+                mgr = fcl.DynamicAABBTreeCollisionManager()
+                mgr.registerObjects(objs)
+                mgr.setup()
+                self._managers[cat] = mgr
+        self._managers = {c: self._managers[c] for c in CATEGORIES if c in self._managers}
+        enabled = [e for e in self.elements.values() if e.name not in self._disabled]
+        objs = [e.obj for e in enabled]
+        self._lo = np.array([e.lo for e in enabled]).reshape(-1, 3)
+        self._hi = np.array([e.hi for e in enabled]).reshape(-1, 3)
+        self._bounds_dirty = False
+        self._all = None
+        if objs:
+            self._all = fcl.DynamicAABBTreeCollisionManager()
+            self._all.registerObjects(objs)
+            self._all.setup()
+        self._dirty = set()
+
+    # -- movers -------------------------------------------------------------------------------------------------
+    def set_arm(self, arm: ArmModel) -> None:
+        """Use `arm`'s link shapes (capsules, boxes, spheres, cylinders) as moving collision objects."""
+        self.arm = arm
+        self._arm_objs = [fcl.CollisionObject(_geometry(s.kind, s.size), fcl.Transform()) for s in arm.shapes]
+        self._arm_radii = np.array([bounding_radius(s.kind, s.size) for s in arm.shapes])
+        n = len(arm.shapes)
+        mask = np.zeros((n, n), dtype=bool)
+        for i in range(n):
+            for j in range(i + 1, n):
+                a, b = sorted((arm.shapes[i].joint, arm.shapes[j].joint))
+                mask[i, j] = a != b and (a, b) not in arm.adjacent
+        self._pair_mask = mask
+        self._low_links = np.array([i for i, s in enumerate(arm.shapes) if s.joint < 3], dtype=np.int64)
+
+    def set_tool(self, tool: ToolModel, clearance_m: float = 0.01) -> None:
+        """Use `tool`'s shapes as moving collision objects; a copy grown by `clearance_m` on every side answers
+        clearance questions (`check_tool(..., inflated=True)`) without distance queries."""
+        self.tool = tool
+        self._tool_objs = []
+        self._tool_objs_inflated = []
+        for s in tool.shapes:
+            size = np.asarray(s.size, dtype=np.float64)
+            self._tool_objs.append(
+                (
+                    fcl.CollisionObject(_geometry(s.kind, size), fcl.Transform()),
+                    np.array(s.tcp_from_shape, dtype=np.float64),
+                    size,
+                    s.moves,
+                )
+            )
+            grown = size + (
+                2 * clearance_m if s.kind == "box" else np.array([clearance_m, 2 * clearance_m])[: len(size)]
+            )
+            pose = np.array(s.tcp_from_shape, dtype=np.float64)
+            if s.moves:  # keep the inner jaw face where it is: grow outwards only
+                pose[0, 3] -= s.moves * clearance_m
+            self._tool_objs_inflated.append(
+                (fcl.CollisionObject(_geometry(s.kind, grown), fcl.Transform()), pose, grown, s.moves)
+            )
+        self._tool_radii = np.array([bounding_radius(s.kind, s.size) for s in tool.shapes])
+        self._tool_radii_inflated = self._tool_radii + np.sqrt(3) * clearance_m
+
+    def attach(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> None:
+        """Hold `mesh` rigidly in the tool (after a grasp); it then moves with the TCP in arm queries."""
+        key = id(mesh)
+        geom = self._mesh_cache.get(key)
+        if geom is None:
+            geom = bvh_from_mesh(mesh.vertices, mesh.faces)
+            self._mesh_cache[key] = geom
+        self._held = (name, fcl.CollisionObject(geom, fcl.Transform()), np.asarray(tcp_from_object, dtype=np.float64))
+        verts = np.asarray(mesh.vertices, dtype=np.float64)
+        centre = (verts.max(axis=0) + verts.min(axis=0)) / 2.0
+        # bounding sphere about the object origin (the fcl object's translation)
+        self._held_radius = float(np.linalg.norm(verts, axis=1).max()) if len(verts) else 0.0
+        del centre
+
+    def detach(self) -> None:
+        self._held = None
+
+    @property
+    def held_name(self) -> str:
+        return self._held[0] if self._held else ""
+
+    # -- queries ------------------------------------------------------------------------------------------------
+    def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:
+        """(K,) bool: which bounding spheres (centres (K, 3), radii (K,) m) touch some enabled element's AABB.
+        A cheap numpy broad phase in front of fcl: shapes far from everything skip the fcl call entirely."""
+        if self._dirty or self._bounds_dirty:
+            if self._bounds_dirty and not self._dirty:
+                self._dirty = set(CATEGORIES)
+            self.update()
+        if len(self._lo) == 0:
+            return np.zeros(len(centres), dtype=bool)
+        c = centres[:, None, :]
+        gap = np.maximum(self._lo[None] - c, 0.0) + np.maximum(c - self._hi[None], 0.0)
+        d2 = np.einsum("kni,kni->kn", gap, gap)
+        return np.any(d2 <= (radii * radii)[:, None], axis=1)
+
+    def _query(self, obj: fcl.CollisionObject, skip: Iterable[str] = ()) -> str:
+        """Category hit by `obj` ('' when free), checking categories in order."""
+        if self._dirty:
+            self.update()
+        if not skip:
+            # one broad phase over everything; only a hit pays for finding its category
+            if self._all is None:
+                return ""
+            cdata = fcl.CollisionData(_REQUEST, fcl.CollisionResult())
+            self._all.collide(obj, cdata, _first_contact)
+            self.n_checks += 1
+            if not cdata.result.is_collision:
+                return ""
+        for cat, mgr in self._managers.items():
+            if cat in skip:
+                continue
+            cdata = fcl.CollisionData(_REQUEST, fcl.CollisionResult())
+            mgr.collide(obj, cdata, _first_contact)
+            self.n_checks += 1
+            if cdata.result.is_collision:
+                return cat
+        return ""
+
+    def _pose_tool(
+        self, world_from_tcp: FloatArray, opening_m: float, inflated: bool = False, only_near: bool = False
+    ) -> list[fcl.CollisionObject]:
+        """Pose the tool shapes; with `only_near`, return (and pose) only those whose bounding sphere touches
+        some element's box."""
+        objs = self._tool_objs_inflated if inflated else self._tool_objs
+        radii = self._tool_radii_inflated if inflated else self._tool_radii
+        poses = []
+        for _obj, tcp_from_shape, size, moves in objs:
+            pose = tcp_from_shape
+            if moves:
+                pose = tcp_from_shape.copy()
+                pose[0, 3] += moves * (opening_m / 2.0 + size[0] / 2.0)
+            poses.append(world_from_tcp @ pose)
+        centres = np.array([p[:3, 3] for p in poses])
+        if not inflated:
+            self._tool_centres = centres
+        keep = self.near(centres, radii) if only_near else np.ones(len(poses), dtype=bool)
+        out = []
+        for (obj, *_), pose, k in zip(objs, poses, keep, strict=True):
+            obj.setTransform(_tf(pose))  # all posed: self-collision reads them
+            if k:
+                out.append(obj)
+        return out
+
+    def check_tool(
+        self, world_from_tcp: ArrayLike, opening_m: float = 0.0, skip: Sequence[str] = (), inflated: bool = False
+    ) -> Hit | None:
+        """First hit of the tool at `world_from_tcp` (4, 4) and jaw opening `opening_m` (m), or None; `inflated`
+        uses the tool grown by the clearance given to `set_tool` (a hit then means 'closer than the clearance')."""
+        if self.tool is None:
+            raise InputError("check_tool needs a tool: call set_tool first")
+        for obj in self._pose_tool(np.asarray(world_from_tcp, dtype=np.float64), opening_m, inflated, True):
+            what = self._query(obj, skip)
+            if what:
+                return Hit("tool", what)
+        return None
+
+    def check_held(self, world_from_tcp: ArrayLike, skip: Sequence[str] = ()) -> Hit | None:
+        """First hit of the held object when the TCP is at `world_from_tcp`, or None (nothing held: None)."""
+        if self._held is None:
+            return None
+        _, obj, tcp_from_object = self._held
+        pose = np.asarray(world_from_tcp, dtype=np.float64) @ tcp_from_object
+        obj.setTransform(_tf(pose))
+        if not self.near(pose[None, :3, 3], np.array([self._held_radius]))[0]:
+            return None
+        what = self._query(obj, skip)
+        return Hit("held", what) if what else None
+
+    def check_arm(self, q: ArrayLike, skip: Sequence[str] = (), self_collision: bool = True) -> Hit | None:
+        """First hit of the arm links at joint angles q (6,) rad against the world, then self-collision."""
+        if self.arm is None:
+            raise InputError("check_arm needs an arm: call set_arm first")
+        return self._check_arm(q, self.arm.frames(q), skip, self_collision)
+
+    def _check_arm(self, q: ArrayLike, frames: FloatArray, skip: Sequence[str], self_collision: bool) -> Hit | None:
+        if self.arm is None:
+            raise InputError("check_arm needs an arm: call set_arm first")
+        poses = self.arm.shape_poses(q, frames)
+        centres = np.array([p[:3, 3] for p in poses])
+        near = self.near(centres, self._arm_radii)
+        near[0] = False  # the base stands on its mount: never checked against the cell
+        posed = np.zeros(len(poses), dtype=bool)
+        for i in np.flatnonzero(near):
+            self._arm_objs[i].setTransform(_tf(poses[i]))
+            posed[i] = True
+            what = self._query(self._arm_objs[i], skip)
+            if what:
+                return Hit("arm", what, self.arm.shapes[i].link)
+        if self_collision:
+            return self._self_collision(poses, centres, posed)
+        return None
+
+    def _self_collision(self, poses: list[FloatArray], centres: FloatArray, posed: FloatArray) -> Hit | None:
+        """Non-adjacent link pairs, and the tool / held object against base, shoulder and upper arm; pairs whose
+        bounding spheres are apart are skipped without calling fcl."""
+        if self.arm is None:
+            return None
+        shapes = self.arm.shapes
+        r = self._arm_radii
+        gap = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - (r[:, None] + r[None])
+
+        def obj(i: int) -> fcl.CollisionObject:
+            if not posed[i]:
+                self._arm_objs[i].setTransform(_tf(poses[i]))
+                posed[i] = True
+            return self._arm_objs[i]
+
+        for i, j in zip(*np.nonzero((gap <= 0) & self._pair_mask), strict=True):
+            if fcl.collide(obj(int(i)), obj(int(j)), _REQUEST, fcl.CollisionResult()):
+                return Hit("self", "arm", f"{shapes[i].link}-{shapes[j].link}")
+        movers = [o for o, *_ in self._tool_objs]
+        mover_centres = list(self._tool_centres)
+        mover_radii = list(self._tool_radii)
+        if self._held is not None:
+            movers.append(self._held[1])
+            mover_centres.append(self._held[1].getTranslation())
+            mover_radii.append(self._held_radius)
+        low = self._low_links
+        mc = np.asarray(mover_centres).reshape(-1, 3)
+        gap_m = np.linalg.norm(centres[low][:, None] - mc[None], axis=-1) - (r[low][:, None] + np.asarray(mover_radii))
+        for a, m in zip(*np.nonzero(gap_m <= 0), strict=True):
+            i = int(low[a])
+            if fcl.collide(obj(i), movers[int(m)], _REQUEST, fcl.CollisionResult()):
+                return Hit("self", "tool", shapes[i].link)
+        return None
+
+    def check_config(
+        self,
+        q: ArrayLike,
+        opening_m: float = 0.0,
+        skip: Sequence[str] = (),
+        skip_tool: Sequence[str] = (),
+        skip_held: Sequence[str] = (),
+    ) -> Hit | None:
+        """Arm, tool (at `opening_m`) and held object at configuration q (6,): the first hit or None.
+
+        `skip` leaves categories out for every part; `skip_tool` / `skip_held` only for the tool / held object
+        (for example the clutter the gripper is allowed to push through at contact)."""
+        if self.arm is None or self.tool is None:
+            raise InputError("check_config needs set_arm and set_tool first")
+        frames = self.arm.frames(q)
+        world_from_tcp = frames[6] @ self.tool.flange_from_tcp
+        hit = self.check_tool(world_from_tcp, opening_m, tuple(skip) + tuple(skip_tool))
+        if hit is None:
+            hit = self.check_held(world_from_tcp, tuple(skip) + tuple(skip_held))
+        if hit is None:
+            hit = self._check_arm(q, frames, skip, True)
+        return hit
+
+    def which(self, world_from_tcp: ArrayLike, opening_m: float = 0.0) -> list[str]:
+        """Names of the enabled elements the tool touches at `world_from_tcp` (for diagnostics; slower)."""
+        self._pose_tool(np.asarray(world_from_tcp, dtype=np.float64), opening_m)
+        req = fcl.CollisionRequest(num_max_contacts=1)
+        names = []
+        for el in self.elements.values():
+            if el.name in self._disabled:
+                continue
+            for obj, *_ in self._tool_objs:
+                if fcl.collide(obj, el.obj, req, fcl.CollisionResult()):
+                    names.append(el.name)
+                    break
+        return names
+
+    def tool_distance(self, world_from_tcp: ArrayLike, opening_m: float = 0.0) -> float:
+        """Smallest distance (m) from the tool to any enabled element (0 when touching). Slow: reports only."""
+        if self._dirty:
+            self.update()
+        self._pose_tool(np.asarray(world_from_tcp, dtype=np.float64), opening_m)
+        best = np.inf
+        for mgr in self._managers.values():
+            for obj, *_ in self._tool_objs:
+                ddata = fcl.DistanceData(fcl.DistanceRequest(), fcl.DistanceResult())
+                mgr.distance(obj, ddata, fcl.defaultDistanceCallback)
+                best = min(best, max(float(ddata.result.min_distance), 0.0))
+        return float(best)

@@ -1,0 +1,146 @@
+"""Grasp candidates in the world: template-annotated pick frames (expanded about free symmetry axes and over the
+tilt cone) plus automatic synthesis, for one fitted object and one tool; primitive templates for objects that
+matched no template."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from normpos_grasp.geometry.transforms import rotation_from_rotvec
+from normpos_grasp.grasp.synthesis import SynthesisOptions, synthesize
+from normpos_grasp.measure.normpos import NormPosition
+from normpos_grasp.templates.model import GraspAnnotation, Template
+from normpos_grasp.typing import FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class GraspCandidate:
+    """One way to pick one object.
+
+    target: index of the object in the planner's target list; template: its template name.
+    grasp_id: annotation id (or synthesis id); source: 'annotated' or 'synthesized'; scheme: 'parallel' or
+    'suction'; world_from_tcp (4, 4); opening_m: jaw opening before closing, m; approach_m / retreat_m: straight
+    line lengths, m; quality in [0, 1] (geometry of the grasp); priority: template priority (higher first).
+    """
+
+    target: int
+    template: str
+    grasp_id: str
+    source: str
+    scheme: str
+    world_from_tcp: FloatArray
+    opening_m: float
+    approach_m: float
+    retreat_m: float
+    quality: float
+    priority: float = 0.0
+
+
+@dataclass(frozen=True)
+class CandidateOptions:
+    """free_axis_steps: rotations sampled about an annotation's free axis. tilt_steps: directions sampled on the
+    tilt cone's rim (0: nominal only). synthesize: 'missing' (only when a template has no annotations), 'always'
+    or 'never'. synthesis: settings of automatic synthesis."""
+
+    free_axis_steps: int = 8
+    tilt_steps: int = 4
+    synthesize: str = "missing"
+    synthesis: SynthesisOptions = SynthesisOptions()
+
+
+def expand_annotation(g: GraspAnnotation, options: CandidateOptions) -> list[tuple[str, FloatArray]]:
+    """(id, object_from_tcp) variants of an annotation: rotations about its free axis and tilts in its cone."""
+    base = np.asarray(g.object_from_tcp, dtype=np.float64)
+    poses = [(g.id, base)]
+    if g.free_axis is not None and options.free_axis_steps > 1:
+        axis = np.asarray(g.free_axis, dtype=np.float64)
+        axis = axis / np.linalg.norm(axis)
+        poses = []
+        for k in range(options.free_axis_steps):
+            rot = np.eye(4)
+            rot[:3, :3] = rotation_from_rotvec(axis * 2 * np.pi * k / options.free_axis_steps)
+            poses.append((f"{g.id}@r{k}", rot @ base))  # about the object-frame axis through the origin
+    if g.tilt_cone_rad > 0 and options.tilt_steps > 0:
+        tilted = []
+        for gid, pose in poses:
+            tilted.append((gid, pose))
+            for k in range(options.tilt_steps):
+                ang = 2 * np.pi * k / options.tilt_steps
+                local_axis = np.array([np.cos(ang), np.sin(ang), 0.0])
+                tilt = np.eye(4)
+                tilt[:3, :3] = rotation_from_rotvec(local_axis * g.tilt_cone_rad)
+                tilted.append((f"{gid}@t{k}", pose @ tilt))  # about the TCP origin
+        poses = tilted
+    return poses
+
+
+@lru_cache(maxsize=256)
+def _synthesize_cached(
+    template: Template, kinds: tuple[str, ...], options: SynthesisOptions
+) -> tuple[GraspAnnotation, ...]:
+    """Synthesis depends only on the template (by identity), the tool kinds and the options: cache it."""
+    return tuple(synthesize(template, kinds, options))
+
+
+def object_grasps(
+    template: Template, kinds: tuple[str, ...], options: CandidateOptions
+) -> list[tuple[GraspAnnotation, str, str, FloatArray]]:
+    """(annotation, source, id, object_from_tcp) for every grasp of `template` usable by tool kinds `kinds`."""
+    out = []
+    annotated = [g for g in template.grasps if g.scheme in kinds]
+    for g in annotated:
+        for gid, pose in expand_annotation(g, options):
+            out.append((g, "annotated", gid, pose))
+    if options.synthesize == "always" or (options.synthesize == "missing" and not annotated):
+        for g in _synthesize_cached(template, kinds, options.synthesis):
+            out.append((g, "synthesized", g.id, np.asarray(g.object_from_tcp, dtype=np.float64)))
+    return out
+
+
+def candidates_for_object(
+    target: int,
+    template: Template,
+    world_from_object: FloatArray,
+    tool_kind: str,
+    options: CandidateOptions | None = None,
+) -> list[GraspCandidate]:
+    """World grasp candidates for one object posed at `world_from_object` (4, 4), for a tool of `tool_kind`."""
+    opts = options or CandidateOptions()
+    out = []
+    for g, source, gid, object_from_tcp in object_grasps(template, (tool_kind,), opts):
+        quality = float(np.clip(g.priority if source == "synthesized" else 1.0, 0.0, 1.0))
+        out.append(
+            GraspCandidate(
+                target=target,
+                template=template.name,
+                grasp_id=gid,
+                source=source,
+                scheme=g.scheme,
+                world_from_tcp=world_from_object @ object_from_tcp,
+                opening_m=float(g.opening_m),
+                approach_m=float(g.approach_m),
+                retreat_m=float(g.retreat_m),
+                quality=quality,
+                priority=float(g.priority) if source == "annotated" else 0.0,
+            )
+        )
+    return out
+
+
+def primitive_template(normpos: NormPosition, name: str = "") -> tuple[Template, FloatArray]:
+    """A box (or plate, when one side is under a quarter of the next) template from a norm-position's oriented box
+    and its world_from_object; for objects no template matched."""
+    import trimesh
+
+    ext = np.maximum(np.asarray(normpos.obb.extents, dtype=np.float64), 2e-3)
+    pose = np.asarray(normpos.obb.frame_from_box, dtype=np.float64).copy()
+    if np.linalg.det(pose[:3, :3]) < 0:
+        pose[:3, 2] *= -1
+    srt = np.sort(ext)
+    shape = "plate" if srt[0] < 0.25 * srt[1] else "box"
+    mesh = trimesh.creation.box(extents=ext)
+    label = normpos.label or "unknown"
+    return Template(name=name or f"primitive_{label}_{normpos.instance_id}", label=label, mesh=mesh, shape=shape), pose

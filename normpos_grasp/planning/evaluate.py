@@ -1,0 +1,334 @@
+"""Five-pose candidate evaluation: bin entry, pre-grasp, grasp, post-grasp lift, bin exit.
+
+Cheap vectorised tests run on every candidate first (approach angle, stroke, workspace, IK at the grasp pose over
+all analytic branches); collision checks then run in prior order with early exits, stopping once enough feasible
+grasps are found. Every rejected candidate keeps its reason: 'approach_angle', 'stroke', 'workspace', 'ik',
+'joint_limits', 'collision_<what>' (cell, object, clutter, self), 'payload'; candidates never reached by the collision
+stage are counted as 'not_evaluated'.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.grasp.candidates import GraspCandidate
+from normpos_grasp.planning.arm import ArmModel
+from normpos_grasp.typing import FloatArray
+
+if TYPE_CHECKING:
+    from normpos_grasp.collision.world import CollisionWorld, Hit
+
+logger = logging.getLogger(__name__)
+
+POSE_NAMES = ("entry", "pre_grasp", "grasp", "lift", "exit")
+
+
+@dataclass(frozen=True)
+class EvaluationOptions:
+    """Settings of candidate evaluation.
+
+    max_approach_up: largest world-z component of the approach direction (0: horizontal; approaches from below
+    the object are rejected as 'approach_angle'). contact_backoff_m: the tool is checked at the grasp pose moved
+    back by this much along the approach (suction cups and jaw faces touch the target by design), m.
+    max_feasible / max_feasible_per_target: stop the collision stage after this many feasible grasps (0: check all).
+    clearance: also test the tool grown by the world's clearance (feeds the ranking). Weights of the ranking
+    score: quality, approach (vertical approach preferred), travel (joint distance from home, per rad),
+    priority (template priority), clearance, height (higher objects first, per m).
+    """
+
+    max_approach_up: float = 0.2
+    contact_backoff_m: float = 0.003
+    max_feasible: int = 8
+    max_feasible_per_target: int = 3
+    clearance: bool = True
+    w_quality: float = 1.0
+    w_approach: float = 0.5
+    w_travel: float = 0.05
+    w_priority: float = 0.5
+    w_clearance: float = 0.3
+    w_height: float = 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """Verdict on one candidate: feasible or the reason (and the pose it failed at, one of POSE_NAMES);
+    world_from_tcp (5, 4, 4) and q (5, 6) rad at the five poses when IK succeeded; branch: IK branch index;
+    score: ranking score (higher is better)."""
+
+    candidate: GraspCandidate
+    feasible: bool
+    reason: str = ""
+    pose: str = ""
+    world_from_tcp: FloatArray | None = None
+    q: FloatArray | None = None
+    branch: int = -1
+    score: float = -np.inf
+    prior: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """An object to pick: `name` (world element name), its mesh's lowest point below... `world_from_object`,
+    `template` mesh (for the held object), `height_m` (world z of its centre), mass_kg."""
+
+    name: str
+    world_from_object: FloatArray
+    mesh: object
+    height_m: float
+    mass_kg: float = 0.1
+    instance_id: int = 0
+    template: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class EvaluationResult:
+    """All verdicts, ranked feasible ones first (best first)."""
+
+    evaluations: tuple[Evaluation, ...]
+    ranked: tuple[Evaluation, ...]
+    counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n_feasible(self) -> int:
+        return len(self.ranked)
+
+
+def five_poses(c: GraspCandidate, entry_z: float, lift_m: float, below_tcp_m: float, clearance_m: float) -> FloatArray:
+    """(5, 4, 4) world_from_tcp at entry, pre-grasp, grasp, lift and exit for candidate `c`.
+
+    Pre-grasp backs off `approach_m` along the approach axis; lift rises `lift_m` in world z; entry and exit are the
+    pre-grasp and lift poses raised to `entry_z` (exit also by `below_tcp_m` + clearance, the held object's depth
+    below the TCP, so it clears the rim)."""
+    g = c.world_from_tcp
+    a = g[:3, 2]
+    pre = g.copy()
+    pre[:3, 3] -= a * c.approach_m
+    lift = g.copy()
+    lift[2, 3] += lift_m
+    entry = pre.copy()
+    entry[2, 3] = max(pre[2, 3], entry_z)
+    exit_ = lift.copy()
+    exit_[2, 3] = max(lift[2, 3], entry_z + below_tcp_m + clearance_m if np.isfinite(entry_z) else lift[2, 3])
+    return np.stack([entry, pre, g, lift, exit_])
+
+
+def evaluate_candidates(
+    candidates: list[GraspCandidate],
+    targets: list[Target],
+    world: CollisionWorld,
+    arm: ArmModel,
+    home_q: FloatArray,
+    entry_z: float,
+    lift_m: float,
+    entry_clearance_m: float,
+    workspace: tuple[FloatArray, FloatArray],
+    options: EvaluationOptions | None = None,
+) -> EvaluationResult:
+    """Evaluate `candidates` (for objects `targets`, each also a world element of the same name) at five poses."""
+    opts = options or EvaluationOptions()
+    tool = world.tool
+    if tool is None:
+        raise ValueError("world has no tool: call world.set_tool first")
+    n = len(candidates)
+    verdict: list[Evaluation | None] = [None] * n
+    if n == 0:
+        return EvaluationResult((), (), {})
+    flange_from_tcp = tool.flange_from_tcp
+    tcp_from_flange = invert_pose(flange_from_tcp)
+    g = np.stack([c.world_from_tcp for c in candidates])
+    approach = g[:, :3, 2]
+    openings = np.array([c.opening_m for c in candidates])
+    below = np.zeros(n)
+    for i, c in enumerate(candidates):
+        t = targets[c.target]
+        verts = np.asarray(t.mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
+        below[i] = c.world_from_tcp[2, 3] - float(
+            (verts @ t.world_from_object[:3, :3].T)[:, 2].min() + t.world_from_object[2, 3]
+        )
+    poses = np.stack(
+        [five_poses(c, entry_z, lift_m, max(below[i], 0.0), entry_clearance_m) for i, c in enumerate(candidates)]
+    )
+
+    def reject(i: int, reason: str, pose: str = "") -> None:
+        verdict[i] = Evaluation(candidates[i], False, reason, pose, poses[i])
+
+    # 1. vectorised screens
+    for j in np.flatnonzero(approach[:, 2] > opts.max_approach_up):
+        reject(int(j), "approach_angle", "grasp")
+    if tool.kind == "parallel":
+        bad = (openings > tool.stroke_m + 1e-9) | (openings < tool.min_opening_m - 1e-9)
+        for j in np.flatnonzero(bad):
+            if verdict[int(j)] is None:
+                reject(int(j), "stroke", "grasp")
+    for i, c in enumerate(candidates):
+        if verdict[i] is None and targets[c.target].mass_kg > tool.payload_kg:
+            reject(i, "payload", "grasp")
+    lo, hi = workspace
+    pos = poses[:, :, :3, 3]
+    out_ws = np.any((pos < lo) | (pos > hi), axis=(1, 2))
+    for j in np.flatnonzero(out_ws):
+        if verdict[int(j)] is None:
+            reject(int(j), "workspace", POSE_NAMES[int(np.argmax(np.any((pos[j] < lo) | (pos[j] > hi), axis=1)))])
+    alive = np.array([v is None for v in verdict])
+    idx = np.flatnonzero(alive)
+    q_all = np.zeros((n, 5, 8, 6))
+    ok_all = np.zeros((n, 5, 8), dtype=bool)
+    if len(idx):
+        # 2. IK at all five poses, all branches, in one batch
+        flange = poses[idx] @ tcp_from_flange
+        q, exists, in_lim = arm.ik_reasons(flange.reshape(-1, 4, 4))
+        q = q.reshape(len(idx), 5, 8, 6)
+        exists = exists.reshape(len(idx), 5, 8)
+        in_lim = in_lim.reshape(len(idx), 5, 8)
+        for k, j in enumerate(idx):
+            has = exists[k].any(axis=1)
+            if not has.all():
+                reject(int(j), "ik", POSE_NAMES[int(np.argmin(has))])
+                continue
+            # a branch must exist at all five poses (straight lines stay on one branch)
+            branch_ok = exists[k].all(axis=0)
+            if not branch_ok.any():
+                reject(int(j), "ik", "branch_change")
+                continue
+            q_k = _unwrap_branch(q[k], arm)
+            lim_ok = np.all((q_k >= arm.lower - 1e-9) & (q_k <= arm.upper + 1e-9), axis=(0, 2)) & branch_ok
+            if not lim_ok.any():
+                reject(int(j), "joint_limits", "grasp")
+                continue
+            q_all[j] = q_k
+            ok_all[j] = lim_ok[None, :]
+        del in_lim
+
+    # 3. prior order: object height, grasp quality, approach angle, priority
+    heights = np.array([targets[c.target].height_m for c in candidates])
+    prior = (
+        opts.w_height * heights
+        + opts.w_quality * np.array([c.quality for c in candidates])
+        + opts.w_approach * (-approach[:, 2])
+        + opts.w_priority * np.array([c.priority for c in candidates])
+    )
+    order = [int(i) for i in np.argsort(-prior, kind="stable") if verdict[int(i)] is None]
+
+    feasible: list[Evaluation] = []
+    per_target: Counter[int] = Counter()
+    current_target = -1
+    for i in order:
+        c = candidates[i]
+        if opts.max_feasible and len(feasible) >= opts.max_feasible:
+            break
+        if opts.max_feasible_per_target and per_target[c.target] >= opts.max_feasible_per_target:
+            continue
+        if c.target != current_target:
+            if current_target >= 0:
+                world.enable(targets[current_target].name)
+            current_target = c.target
+        ev = _check_collisions(i, c, poses[i], q_all[i], ok_all[i], targets[c.target], world, arm, home_q, opts)
+        verdict[i] = ev
+        if ev.feasible:
+            ev = _with_score(ev, prior[i], arm, home_q, world, opts)
+            verdict[i] = ev
+            feasible.append(ev)
+            per_target[c.target] += 1
+    if current_target >= 0:
+        world.enable(targets[current_target].name)
+        world.detach()
+    final = [
+        v if v is not None else Evaluation(candidates[i], False, "not_evaluated", "", poses[i], prior=prior[i])
+        for i, v in enumerate(verdict)
+    ]
+    counts = Counter(v.reason for v in final if not v.feasible)
+    ranked = tuple(sorted(feasible, key=lambda e: -e.score))
+    return EvaluationResult(tuple(final), ranked, dict(counts))
+
+
+def _unwrap_branch(q: FloatArray, arm: ArmModel) -> FloatArray:
+    """(5, 8, 6): every pose's branch angles shifted by 2 pi multiples next to the grasp pose's (index 2)."""
+    out = q.copy()
+    ref = q[2]
+    two_pi = 2 * np.pi
+    for p in range(5):
+        out[p] = q[p] + two_pi * np.round((ref - q[p]) / two_pi)
+    # shift the whole branch by 2 pi per joint where that brings it inside the limits
+    for shift in (two_pi, -two_pi):
+        moved = out + shift
+        inside_now = np.all((out >= arm.lower) & (out <= arm.upper), axis=0)  # (8, 6)
+        inside_moved = np.all((moved >= arm.lower) & (moved <= arm.upper), axis=0)
+        take = ~inside_now & inside_moved
+        out = np.where(take[None], moved, out)
+    return out
+
+
+def _check_collisions(
+    i: int,
+    c: GraspCandidate,
+    poses: FloatArray,
+    q: FloatArray,
+    ok: FloatArray,
+    target: Target,
+    world: CollisionWorld,
+    arm: ArmModel,
+    home_q: FloatArray,
+    opts: EvaluationOptions,
+) -> Evaluation:
+    """Tool at pre-grasp and (backed-off) grasp, then the arm on each valid branch at all five poses; the target
+    is held (attached, removed from the world) at lift and exit."""
+    world.detach()
+    world.enable(target.name)
+    a = poses[2][:3, 2]
+    backed = poses[2].copy()
+    backed[:3, 3] -= a * opts.contact_backoff_m
+    for pose_name, pose in (("grasp", backed), ("pre_grasp", poses[1]), ("entry", poses[0])):
+        hit = world.check_tool(pose, c.opening_m)
+        if hit is not None:
+            return Evaluation(c, False, hit.reason, pose_name, poses)
+    branches = np.flatnonzero(ok[0]) if ok.ndim == 2 else np.flatnonzero(ok)
+    # nearest branch to home first
+    travel = [float(np.abs(q[0, b] - home_q).sum()) for b in branches]
+    first_hit: tuple[Hit, str] | None = None
+    for b in (branches[j] for j in np.argsort(travel)):
+        hit, pose_name = _arm_at_poses(q[:, b], c, target, poses, world)
+        if hit is None:
+            return Evaluation(c, True, "", "", poses, q[:, b].copy(), int(b))
+        if first_hit is None:
+            first_hit = (hit, pose_name)
+    if first_hit is None:
+        return Evaluation(c, False, "ik", "branch_change", poses)
+    return Evaluation(c, False, first_hit[0].reason, first_hit[1], poses)
+
+
+def _arm_at_poses(
+    q: FloatArray, c: GraspCandidate, target: Target, poses: FloatArray, world: CollisionWorld
+) -> tuple[Hit | None, str]:
+    world.detach()
+    world.enable(target.name)
+    for p in (2, 1, 0):  # grasp first: the most constrained
+        hit = world.check_arm(q[p])
+        if hit is not None:
+            return hit, POSE_NAMES[p]
+    world.disable(target.name)
+    world.attach(target.name, target.mesh, invert_pose(poses[2]) @ target.world_from_object)  # type: ignore[arg-type]
+    for p in (3, 4):
+        hit = world.check_config(q[p], c.opening_m)
+        if hit is not None:
+            return hit, POSE_NAMES[p]
+    return None, ""
+
+
+def _with_score(
+    ev: Evaluation, prior: float, arm: ArmModel, home_q: FloatArray, world: CollisionWorld, opts: EvaluationOptions
+) -> Evaluation:
+    if ev.q is None or ev.world_from_tcp is None:
+        return ev
+    travel = float(np.abs(ev.q[0] - home_q).sum())
+    clear = 0.0
+    if opts.clearance:
+        world.detach()
+        clear = 1.0 if world.check_tool(ev.world_from_tcp[1], ev.candidate.opening_m, inflated=True) is None else 0.0
+    score = prior - opts.w_travel * travel + opts.w_clearance * clear
+    return Evaluation(ev.candidate, True, "", "", ev.world_from_tcp, ev.q, ev.branch, score, prior)

@@ -1,0 +1,553 @@
+"""Pick-and-place planning: from accepted template fits and measured norm-positions to a `PickPlan`.
+
+home -> entry -> pre_grasp -> grasp -> lift -> retreat -> pre_place -> place -> post_place. Approach and retreat
+are Cartesian straight lines (dense IK on one analytic branch); the transfers (home -> entry, retreat -> pre_place)
+are joint-space motions, straight when collision-free, otherwise RRT-Connect. The whole path is time-parameterised
+within the cell's caps. No feasible grasp is a result (status 'no_feasible_grasp' with reason counts), not an error.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from normpos_grasp.cell.config import CellConfig, PlaceSpec
+from normpos_grasp.collision.tool import ToolModel
+from normpos_grasp.collision.world import CollisionWorld
+from normpos_grasp.errors import PlanningError
+from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.grasp.candidates import CandidateOptions, GraspCandidate, candidates_for_object, primitive_template
+from normpos_grasp.measure.normpos import NormPosition
+from normpos_grasp.planning.arm import ArmModel
+from normpos_grasp.planning.evaluate import Evaluation, EvaluationOptions, Target, evaluate_candidates
+from normpos_grasp.planning.rrt import MotionOptions, plan_joint_motion
+from normpos_grasp.planning.timing import TimingOptions, Trajectory, time_parameterise
+from normpos_grasp.templates.model import TemplateFit
+from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+PLAN_FORMAT = "normpos-grasp/plan@1"
+WAYPOINTS = ("home", "entry", "pre_grasp", "grasp", "lift", "retreat", "pre_place", "place", "post_place")
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """Planner settings.
+
+    cartesian_step_m: sample spacing of straight-line segments, m. max_joint_jump_rad: largest joint change
+    between two samples of a straight line before it counts as a branch flip. explain_tolerance_m: measured
+    points farther than this outside their fitted template's box count as unexplained clutter, m.
+    pick_unmatched: also pick objects that matched no template, as boxes/plates from their oriented box.
+    place_drop_m: the held object's lowest point stays this far above the place surface at release, m.
+    max_plan_attempts: ranked grasps tried for a full path before giving up.
+    release_tolerance_m: over the first this-many metres of the lift the held object may graze other objects and
+    clutter (fitted poses of touching parts overlap by pose noise); tool and arm are checked as always.
+    """
+
+    cartesian_step_m: float = 0.01
+    max_joint_jump_rad: float = 0.35
+    explain_tolerance_m: float = 0.01
+    pick_unmatched: bool = False
+    place_drop_m: float = 0.005
+    release_tolerance_m: float = 0.01
+    max_plan_attempts: int = 5
+    candidates: CandidateOptions = CandidateOptions()
+    evaluation: EvaluationOptions = EvaluationOptions()
+    motion: MotionOptions = MotionOptions()
+    timing: TimingOptions = TimingOptions()
+
+
+@dataclass(frozen=True, eq=False)
+class Waypoint:
+    """A named configuration: q (6,) rad and the TCP pose world_from_tcp (4, 4) it reaches."""
+
+    name: str
+    q: FloatArray
+    world_from_tcp: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class PickPlan:
+    """Result of `plan_pick`. status: 'ok' or 'no_feasible_grasp'. chosen: the evaluation of the grasp taken.
+    counts: rejection counts by reason over all candidates. timing_ms: stage times."""
+
+    status: str
+    robot: str
+    world_from_base: FloatArray
+    tool: ToolModel
+    targets: tuple[Target, ...]
+    chosen: Evaluation | None
+    waypoints: tuple[Waypoint, ...]
+    trajectory: Trajectory | None
+    evaluations: tuple[Evaluation, ...]
+    counts: dict[str, int]
+    n_feasible: int
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    place: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        """The documented plan.json mapping (docs/grasping.md)."""
+        opening = self.chosen.candidate.opening_m if self.chosen is not None else 0.0
+        rejected = {k: v for k, v in sorted(self.counts.items()) if k != "not_evaluated"}
+        out: dict[str, Any] = {
+            "format": PLAN_FORMAT,
+            "status": self.status,
+            "robot": self.robot,
+            "world_from_base": np.asarray(self.world_from_base).tolist(),
+            "tool": self.tool.to_json(opening),
+            "target": None,
+            "grasp": None,
+            "joint_waypoints": [
+                {"name": w.name, "q": [float(v) for v in w.q], "world_from_tcp": np.asarray(w.world_from_tcp).tolist()}
+                for w in self.waypoints
+            ],
+            "trajectory": None,
+            "candidates": {
+                "total": len(self.evaluations),
+                "evaluated": sum(1 for e in self.evaluations if e.reason != "not_evaluated"),
+                "feasible": self.n_feasible,
+                "not_evaluated": int(self.counts.get("not_evaluated", 0)),
+                "rejected_by_reason": rejected,
+            },
+            "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
+        }
+        if self.chosen is not None:
+            c = self.chosen.candidate
+            t = self.targets[c.target]
+            out["target"] = {
+                "instance": int(t.instance_id),
+                "name": t.name,
+                "template": t.template,
+                "world_from_object": np.asarray(t.world_from_object).tolist(),
+            }
+            out["grasp"] = {
+                "id": c.grasp_id,
+                "scheme": c.scheme,
+                "source": c.source,
+                "world_from_tcp": np.asarray(c.world_from_tcp).tolist(),
+                "opening_m": float(c.opening_m),
+                "quality": float(c.quality),
+                "score": float(self.chosen.score),
+                "place": self.place,
+            }
+        if self.trajectory is not None:
+            out["trajectory"] = {
+                "dt_s": float(np.median(np.diff(self.trajectory.t))) if len(self.trajectory.t) > 1 else 0.0,
+                "duration_s": self.trajectory.duration_s,
+                "samples": [
+                    {"t": round(float(t), 6), "q": [round(float(v), 9) for v in q]}
+                    for t, q in zip(self.trajectory.t, self.trajectory.q, strict=True)
+                ],
+            }
+        return out
+
+    def save(self, path: str | Path) -> None:
+        """Write plan.json."""
+        Path(path).write_text(json.dumps(self.to_json(), indent=1), encoding="utf-8")
+
+
+def build_world(
+    cell: CellConfig,
+    fits: Sequence[TemplateFit],
+    normpositions: Sequence[NormPosition],
+    arm: ArmModel,
+    options: PlanOptions | None = None,
+) -> tuple[CollisionWorld, list[Target], list[Any]]:
+    """The collision world of a frame and the pickable targets.
+
+    Accepted fits become BVH meshes ('object/<k>'); measured points that no accepted fit explains become voxel
+    boxes ('clutter'); with `pick_unmatched`, norm-positions without a fit become primitive targets instead.
+    Returns (world, targets, templates per target)."""
+    opts = options or PlanOptions()
+    world = CollisionWorld()
+    for box in cell.static_boxes:
+        world.add_box(box.name, box.world_from_box, box.size, "cell")
+    targets: list[Target] = []
+    templates: list[Any] = []
+    fitted_ids: set[int] = set()
+    for k, fit in enumerate(fits):
+        if not fit.accepted:
+            continue
+        if fit.frame != "world":
+            raise PlanningError(
+                f"fit {k} ({fit.template.name}) is in frame {fit.frame!r}; plan_pick needs world-frame "
+                "fits: transform them with the camera's world_from_camera first"
+            )
+        mesh = fit.template.mesh
+        if abs(fit.scale - 1.0) > 1e-6:
+            mesh = mesh.copy()
+            mesh.apply_scale(fit.scale)
+        name = f"object/{k}"
+        world.add_mesh(name, mesh, fit.world_from_object, "object")
+        centre = fit.world_from_object[:3, :3] @ np.asarray(mesh.bounds).mean(axis=0) + fit.world_from_object[:3, 3]
+        targets.append(
+            Target(
+                name,
+                np.asarray(fit.world_from_object, dtype=np.float64),
+                mesh,
+                float(centre[2]),
+                fit.template.mass_kg,
+                fit.instance_id,
+                fit.template.name,
+            )
+        )
+        templates.append(fit.template)
+        fitted_ids.add(fit.instance_id)
+    for np_ in normpositions:
+        if np_.frame != "world":
+            raise PlanningError(
+                f"norm-position {np_.instance_id} is in frame {np_.frame!r}; plan_pick needs the world frame"
+            )
+        pts = np.asarray(np_.points, dtype=np.float64)
+        if np_.instance_id in fitted_ids:
+            pts = _unexplained(pts, [t for t in targets if t.instance_id == np_.instance_id], opts.explain_tolerance_m)
+        elif opts.pick_unmatched and np_.n_points >= 10:
+            template, pose = primitive_template(np_)
+            name = f"object/unmatched_{np_.instance_id}"
+            world.add_mesh(name, template.mesh, pose, "object")
+            targets.append(
+                Target(name, pose, template.mesh, float(pose[2, 3]), template.mass_kg, np_.instance_id, template.name)
+            )
+            templates.append(template)
+            continue
+        if len(pts):
+            world.add_points(f"clutter/{np_.instance_id}", pts, cell.voxel_m, "clutter")
+    return world, targets, templates
+
+
+def _unexplained(points: FloatArray, targets: list[Target], tol: float) -> FloatArray:
+    """Points outside every target's template box grown by `tol` (object frame)."""
+    keep = np.ones(len(points), dtype=bool)
+    for t in targets:
+        inv = invert_pose(t.world_from_object)
+        local = points @ inv[:3, :3].T + inv[:3, 3]
+        lo, hi = np.asarray(t.mesh.bounds)  # type: ignore[attr-defined]
+        inside = np.all((local >= lo - tol) & (local <= hi + tol), axis=1)
+        keep &= ~inside
+    return points[keep]
+
+
+def plan_pick(
+    fits: Sequence[TemplateFit],
+    normpositions: Sequence[NormPosition],
+    cell: CellConfig,
+    options: PlanOptions | None = None,
+    start_q: FloatArray | None = None,
+) -> PickPlan:
+    """Choose an object and a grasp and plan the pick-and-place motion from `start_q` (default the cell's home)."""
+    opts = options or PlanOptions()
+    t_start = time.perf_counter()
+    timing: dict[str, float] = {}
+    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
+    world, targets, templates = build_world(cell, fits, normpositions, arm, opts)
+    world.set_arm(arm)
+    world.set_tool(cell.tool)
+    world.update()
+    timing["world"] = (time.perf_counter() - t_start) * 1e3
+    t0 = time.perf_counter()
+    candidates: list[GraspCandidate] = []
+    for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
+        candidates.extend(candidates_for_object(k, template, target.world_from_object, cell.tool.kind, opts.candidates))
+    timing["candidates"] = (time.perf_counter() - t0) * 1e3
+    home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
+    return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
+
+
+def plan_from_candidates(
+    candidates: list[GraspCandidate],
+    targets: list[Target],
+    world: CollisionWorld,
+    arm: ArmModel,
+    cell: CellConfig,
+    home: FloatArray,
+    opts: PlanOptions,
+    timing: dict[str, float] | None = None,
+    t_start: float | None = None,
+) -> PickPlan:
+    """Evaluate candidates, then build the path for the best-ranked grasp that admits one."""
+    timing = {} if timing is None else timing
+    t_start = time.perf_counter() if t_start is None else t_start
+    t0 = time.perf_counter()
+    result = evaluate_candidates(
+        candidates,
+        targets,
+        world,
+        arm,
+        home,
+        cell.entry_z,
+        cell.lift_m,
+        cell.entry_clearance_m,
+        (cell.motion.workspace_min, cell.motion.workspace_max),
+        opts.evaluation,
+    )
+    timing["evaluate"] = (time.perf_counter() - t0) * 1e3
+    counts = Counter(result.counts)
+    evaluations = list(result.evaluations)
+    t0 = time.perf_counter()
+    chosen: Evaluation | None = None
+    waypoints: tuple[Waypoint, ...] = ()
+    segments: list[FloatArray] = []
+    tcp_segments: list[FloatArray | None] = []
+    place_name = ""
+    for attempt, ev in enumerate(result.ranked):
+        if attempt >= opts.max_plan_attempts:
+            break
+        try:
+            waypoints, segments, tcp_segments, place_name = _build_path(
+                ev, targets[ev.candidate.target], world, arm, cell, home, opts
+            )
+        except PlanningError as exc:
+            reason = getattr(exc, "reason", "path")
+            logger.debug("grasp %s rejected while building the path: %s", ev.candidate.grasp_id, exc)
+            counts[reason] += 1
+            idx = next(i for i, e in enumerate(evaluations) if e is ev)
+            evaluations[idx] = Evaluation(ev.candidate, False, reason, "", ev.world_from_tcp, ev.q, ev.branch)
+            continue
+        chosen = ev
+        break
+    timing["path"] = (time.perf_counter() - t0) * 1e3
+    trajectory = None
+    if chosen is not None:
+        t0 = time.perf_counter()
+        trajectory = time_parameterise(
+            segments,
+            cell.motion.joint_velocity,
+            cell.motion.joint_acceleration,
+            tcp_segments,
+            cell.motion.tcp_speed_m_s,
+            opts.timing,
+        )
+        timing["timing"] = (time.perf_counter() - t0) * 1e3
+    timing["total"] = (time.perf_counter() - t_start) * 1e3
+    n_feasible = sum(1 for e in evaluations if e.feasible)
+    return PickPlan(
+        status="ok" if chosen is not None else "no_feasible_grasp",
+        robot=cell.robot_model,
+        world_from_base=cell.world_from_base,
+        tool=cell.tool,
+        targets=tuple(targets),
+        chosen=chosen,
+        waypoints=waypoints,
+        trajectory=trajectory,
+        evaluations=tuple(evaluations),
+        counts=dict(counts),
+        n_feasible=n_feasible,
+        timing_ms=timing,
+        place=place_name,
+    )
+
+
+class _PathRejected(PlanningError):
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def _line(
+    arm: ArmModel,
+    tcp_from_flange: FloatArray,
+    a: FloatArray,
+    b: FloatArray,
+    q_start: FloatArray,
+    branch: int,
+    opts: PlanOptions,
+) -> tuple[FloatArray, FloatArray]:
+    """Joint samples (K, 6) and TCP positions (K, 3) of the straight TCP line a -> b (same orientation)."""
+    dist = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
+    n = max(int(np.ceil(dist / opts.cartesian_step_m)), 1)
+    s = np.linspace(0.0, 1.0, n + 1)
+    poses = np.repeat(a[None], n + 1, axis=0)
+    poses[:, :3, 3] = a[:3, 3] + s[:, None] * (b[:3, 3] - a[:3, 3])
+    q, exists, _ = arm.ik_reasons(poses @ tcp_from_flange)
+    if not exists[:, branch].all():
+        raise _PathRejected("straight line leaves the IK branch", "path_ik")
+    qs = q[:, branch].copy()
+    two_pi = 2 * np.pi
+    prev = q_start
+    for k in range(len(qs)):
+        qs[k] = qs[k] + two_pi * np.round((prev - qs[k]) / two_pi)
+        if np.abs(qs[k] - prev).max() > opts.max_joint_jump_rad:
+            raise _PathRejected("straight line passes a singularity (joint jump)", "path_singularity")
+        prev = qs[k]
+    if not all(arm.within_limits(x) for x in qs):
+        raise _PathRejected("straight line leaves the joint limits", "path_joint_limits")
+    return qs, poses[:, :3, 3]
+
+
+def _place_pose(place: PlaceSpec, tcp_from_object: FloatArray, target: Target, drop_m: float) -> FloatArray:
+    """TCP pose at release: the place orientation, raised so the held object's lowest point is `drop_m` above the
+    place height."""
+    pose = place.world_from_tcp.copy()
+    verts = np.asarray(target.mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
+    obj = pose @ tcp_from_object
+    lowest = float((verts @ obj[:3, :3].T)[:, 2].min() + obj[2, 3])
+    pose[2, 3] += (place.world_from_tcp[2, 3] - lowest) + drop_m
+    return pose
+
+
+def _place_motion(
+    place: PlaceSpec,
+    target: Target,
+    tcp_from_object: FloatArray,
+    q_from: FloatArray,
+    world: CollisionWorld,
+    arm: ArmModel,
+    tcp_from_flange: FloatArray,
+    free_held: Any,
+    opts: PlanOptions,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, PlaceSpec]:
+    """Straight pre-place -> place (held) and place -> post-place (released) lines on the branch nearest `q_from`."""
+    place_pose = _place_pose(place, tcp_from_object, target, opts.place_drop_m)
+    pre_place = place_pose.copy()
+    pre_place[:3, 3] -= place_pose[:3, 2] * place.approach_m
+    q_pp, ok_pp = arm.ik(pre_place @ tcp_from_flange, q_from)
+    branches = np.flatnonzero(ok_pp[0])
+    if len(branches) == 0:
+        raise _PathRejected(f"place {place.name!r}: pre-place pose out of reach", "place_ik")
+    branches = branches[np.argsort(np.abs(q_pp[0, branches] - q_from).sum(axis=1))]
+    last = _PathRejected(f"place {place.name!r}: no branch", "place_ik")
+    for pb in branches:
+        try:
+            seg_place, tcp_place = _line(arm, tcp_from_flange, pre_place, place_pose, q_pp[0, pb], int(pb), opts)
+            seg_post, tcp_post = _line(arm, tcp_from_flange, place_pose, pre_place, seg_place[-1], int(pb), opts)
+        except _PathRejected as exc:
+            last = exc
+            continue
+        if not all(free_held(q) for q in seg_place[:-1]):
+            last = _PathRejected(f"place {place.name!r}: collision placing", "place_collision")
+            continue
+        held = world.held_name, world._held
+        world.detach()
+        try:
+            if any(world.check_arm(q) is not None for q in seg_post[1:]):
+                last = _PathRejected(f"place {place.name!r}: collision leaving", "place_collision")
+                continue
+        finally:
+            if held[1] is not None:
+                world.attach(held[0], target.mesh, tcp_from_object)  # type: ignore[arg-type]
+        return seg_place, tcp_place, seg_post, tcp_post, place
+    raise last
+
+
+def _build_path(
+    ev: Evaluation,
+    target: Target,
+    world: CollisionWorld,
+    arm: ArmModel,
+    cell: CellConfig,
+    home: FloatArray,
+    opts: PlanOptions,
+) -> tuple[tuple[Waypoint, ...], list[FloatArray], list[FloatArray | None], str]:
+    if ev.q is None or ev.world_from_tcp is None:
+        raise _PathRejected("evaluation carries no configurations", "path")
+    tool = cell.tool
+    c = ev.candidate
+    tcp_from_flange = invert_pose(tool.flange_from_tcp)
+    poses, qs, b = ev.world_from_tcp, ev.q, ev.branch
+    tcp_from_object = invert_pose(poses[2]) @ target.world_from_object
+    opening = c.opening_m
+
+    def free_empty(q: FloatArray) -> bool:
+        return world.check_config(q, opening) is None
+
+    def free_held(q: FloatArray) -> bool:
+        return world.check_config(q, opening) is None
+
+    world.detach()
+    world.enable(target.name)
+    # 1. straight lines first (cheap), transfers (joint-space search) last
+    seg_entry, tcp_entry = _line(arm, tcp_from_flange, poses[0], poses[1], qs[0], b, opts)
+    seg_pre, tcp_pre = _line(arm, tcp_from_flange, poses[1], poses[2], seg_entry[-1], b, opts)
+    seg_lift, tcp_lift = _line(arm, tcp_from_flange, poses[2], poses[3], seg_pre[-1], b, opts)
+    seg_exit, tcp_exit = _line(arm, tcp_from_flange, poses[3], poses[4], seg_lift[-1], b, opts)
+    for q in seg_entry[1:]:
+        if not free_empty(q):
+            raise _PathRejected("collision on the way into the bin", "path_collision")
+    backoff = opts.evaluation.contact_backoff_m + opts.cartesian_step_m
+    for q, p in zip(seg_pre[1:-1], tcp_pre[1:-1], strict=True):
+        if np.linalg.norm(p - tcp_pre[-1]) <= backoff:
+            if world.check_arm(q) is not None:  # the tool touches the target by design at the end
+                raise _PathRejected("arm collision on the approach", "path_collision")
+            continue
+        if not free_empty(q):
+            raise _PathRejected("collision on the approach", "path_collision")
+    world.disable(target.name)
+    world.attach(target.name, target.mesh, tcp_from_object)  # type: ignore[arg-type]
+    try:
+        lifted = tcp_lift - tcp_lift[0]
+        for q, dz in zip(
+            list(seg_lift[1:]) + list(seg_exit[1:]),
+            list(np.linalg.norm(lifted[1:], axis=1)) + [np.inf] * (len(seg_exit) - 1),
+            strict=True,
+        ):
+            # the first millimetres may graze neighbours the fit left touching (pose noise): tool and arm only
+            skip_held = ("object", "clutter") if dz < opts.release_tolerance_m else ()
+            if world.check_config(q, opening, skip_held=skip_held) is not None:
+                raise _PathRejected("collision while lifting the object out", "path_collision")
+        place_err: _PathRejected | None = None
+        found = None
+        for place in cell.places:
+            try:
+                found = _place_motion(
+                    place, target, tcp_from_object, seg_exit[-1], world, arm, tcp_from_flange, free_held, opts
+                )
+                place_err = None
+                break
+            except _PathRejected as exc:
+                place_err = exc
+        if found is None:
+            raise place_err or _PathRejected("no place pose given", "place_ik")
+        seg_place, tcp_place, seg_post, tcp_post, place = found
+        # 2. transfers: exit -> pre-place holding the object, then home -> entry empty-handed
+        try:
+            transfer_out = plan_joint_motion(seg_exit[-1], seg_place[0], free_held, arm.lower, arm.upper, opts.motion)
+        except PlanningError as exc:
+            raise _PathRejected(f"no joint path from the bin exit to the place: {exc}", "place_transfer") from exc
+    finally:
+        world.detach()
+        world.enable(target.name)
+    try:
+        transfer_in = plan_joint_motion(home, seg_entry[0], free_empty, arm.lower, arm.upper, opts.motion)
+    except PlanningError as exc:
+        raise _PathRejected(f"no joint path from home to the bin entry: {exc}", "path_transfer") from exc
+    fk = arm.fk
+    flange_from_tcp = tool.flange_from_tcp
+
+    def wp(name: str, q: FloatArray) -> Waypoint:
+        return Waypoint(name, np.asarray(q, dtype=np.float64), fk(q) @ flange_from_tcp)
+
+    waypoints = (
+        wp("home", home),
+        wp("entry", seg_entry[0]),
+        wp("pre_grasp", seg_pre[0]),
+        wp("grasp", seg_pre[-1]),
+        wp("lift", seg_lift[-1]),
+        wp("retreat", seg_exit[-1]),
+        wp("pre_place", seg_place[0]),
+        wp("place", seg_place[-1]),
+        wp("post_place", seg_post[-1]),
+    )
+    segments: list[FloatArray] = []
+    tcp_segments: list[FloatArray | None] = []
+    for k in range(len(transfer_in) - 1):
+        segments.append(np.stack([transfer_in[k], transfer_in[k + 1]]))
+        tcp_segments.append(None)
+    for seg, tcp in ((seg_entry, tcp_entry), (seg_pre, tcp_pre), (seg_lift, tcp_lift), (seg_exit, tcp_exit)):
+        segments.append(seg)
+        tcp_segments.append(tcp)
+    for k in range(len(transfer_out) - 1):
+        segments.append(np.stack([transfer_out[k], transfer_out[k + 1]]))
+        tcp_segments.append(None)
+    for seg, tcp in ((seg_place, tcp_place), (seg_post, tcp_post)):
+        segments.append(seg)
+        tcp_segments.append(tcp)
+    return waypoints, segments, tcp_segments, place.name
