@@ -60,7 +60,8 @@ def test_centred_antipodal_grasp_holds() -> None:
 def test_fingers_on_sphere_pole_fail() -> None:
     sphere = _sphere()
     pose = make_pose(translation=[0.0, 0.0, 0.0225])
-    tcp = _tcp(pose[:3, 3] + [0.0, 0.0, 0.019])  # jaws close on the pole cap, 3.5 mm below the top
+    # 2F-85 fingertips reach 13 mm past the TCP: they close on the pole cap, 4 mm below its top
+    tcp = _tcp(pose[:3, 3] + [0.0, 0.0, 0.0225 - 0.004 + 0.013])
     res = validate_grasp(sphere, pose, [], TABLE, GripperSpec.preset("2f85"), tcp, 0.065)
     assert res.outcome in ("slip", "drop"), res.reason
     # the same sphere gripped across its equator holds
@@ -100,13 +101,17 @@ def test_heavy_part_on_weak_vacuum_is_dropped() -> None:
     assert "vacuum let go" in res.reason
 
 
-def test_ring_gripped_across_its_wall_holds() -> None:
+def test_ring_gripped_across_and_into_its_hole() -> None:
     ring = _ring()
     pose = make_pose(translation=[0.0, 0.0, 0.0075])
     assert len(collision_pieces(ring)) > 4  # non-convex: decomposed, the hole stays open
-    tcp = _tcp(pose[:3, 3] + [0.024, 0.0, 0.0035])
-    res = validate_grasp(ring, pose, [], TABLE, GripperSpec.preset("2f85"), tcp, 0.04)
+    tcp = _tcp(pose[:3, 3] + [0.0, 0.0, 0.0065])  # fingertips 1 mm above the table
+    res = validate_grasp(ring, pose, [], TABLE, GripperSpec.preset("2f85"), tcp, 0.075)
     assert res.outcome == "held", res.reason
+    # one 20 x 27 mm finger driven into the 36 mm hole to pinch the wall hits the far side of the wall
+    tcp = _tcp(pose[:3, 3] + [0.024, 0.0, 0.0065])
+    res = validate_grasp(ring, pose, [], TABLE, GripperSpec.preset("2f85"), tcp, 0.04)
+    assert res.outcome == "collision" and res.collision_with.startswith("target")
 
 
 def test_fingertips_driven_into_the_table_collide() -> None:

@@ -46,19 +46,21 @@ OUTCOMES = ("held", "slip", "drop", "collision", "missed")
 StaticBox = tuple[str, FloatArray, FloatArray]  # (name, world_from_box (4, 4), full size (3,))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class GripperSpec:
     """What physics needs to know about a gripper (TCP frame: z approach, x closing). Metres, newtons.
 
     kind: 'parallel' or 'suction'. stroke_m: maximum jaw opening. grip_force_n: squeeze force per finger
     (force limit of the jaw drive). closing_speed_m_s: jaw closing speed (both fingers together).
     finger_length_m / finger_width_m / finger_thickness_m: finger box along z / y / x. tip_beyond_tcp_m: how far
-    the fingertips reach past the TCP along +z. palm_depth_m: palm box thickness along z behind the fingers.
+    the fingertips reach past the TCP along +z. palm_size_m: (x, y, z) palm box right behind the fingers, used
+    when `body_shapes` is empty. body_shapes: the rest of the hand in the TCP frame as (kind, size, tcp_from_shape
+    (4, 4)) with python-fcl size conventions (kinematics CollisionShape), kinds box / cylinder / capsule / sphere.
     finger_friction: Coulomb friction of the pads; torsional_friction_m: torsional friction of the pads (m).
     cup_diameter_m: suction cup diameter; vacuum_kpa: pressure difference of the vacuum; vacuum_efficiency:
     share of the ideal pressure x area force the cup delivers; bellows_travel_m / bellows_stiffness_n_m:
     compliance of the cup along z; cup_friction: friction of the lip. tool_radius_m / tool_length_m: the
-    suction tool's shaft behind the cup.
+    suction tool's shaft behind the cup (when `body_shapes` is empty).
     """
 
     kind: str = "parallel"
@@ -66,11 +68,11 @@ class GripperSpec:
     stroke_m: float = 0.085
     grip_force_n: float = 100.0
     closing_speed_m_s: float = 0.1
-    finger_length_m: float = 0.05
-    finger_width_m: float = 0.022
-    finger_thickness_m: float = 0.008
-    tip_beyond_tcp_m: float = 0.01
-    palm_depth_m: float = 0.04
+    finger_length_m: float = 0.062
+    finger_width_m: float = 0.027
+    finger_thickness_m: float = 0.02
+    tip_beyond_tcp_m: float = 0.013
+    palm_size_m: tuple[float, float, float] = (0.125, 0.075, 0.09)
     finger_friction: float = 0.9
     torsional_friction_m: float = 0.004
     cup_diameter_m: float = 0.03
@@ -80,7 +82,8 @@ class GripperSpec:
     bellows_stiffness_n_m: float = 400.0
     cup_friction: float = 0.8
     tool_radius_m: float = 0.012
-    tool_length_m: float = 0.08
+    tool_length_m: float = 0.1
+    body_shapes: tuple[tuple[str, tuple[float, ...], FloatArray], ...] = ()
 
     def __post_init__(self) -> None:
         if self.kind not in ("parallel", "suction"):
@@ -116,9 +119,8 @@ class GripperSpec:
                 name="2f140",
                 stroke_m=0.14,
                 grip_force_n=60.0,
-                finger_length_m=0.06,
-                finger_width_m=0.027,
-                finger_thickness_m=0.009,
+                finger_length_m=0.101,
+                palm_size_m=(0.195, 0.075, 0.12),
             ),
             "suction": cls(kind="suction", name="suction"),
         }
@@ -128,9 +130,10 @@ class GripperSpec:
 
     @classmethod
     def from_gripper(cls, gripper: Any, **overrides: Any) -> GripperSpec:
-        """Spec from a `normpos_grasp.kinematics` Gripper (attributes kind, name, stroke_m, cup_diameter_m and,
-        where present, grip_force_n / max_force_n / finger sizes); missing values come from the preset of the
-        same kind. `overrides` replace fields afterwards."""
+        """Spec from a `normpos_grasp.kinematics.gripper.Gripper`: kind, name, stroke, finger boxes, cup diameter
+        and stroke, and the hand's other collision shapes (in the TCP frame) are taken over; forces, speeds and
+        friction come from the preset of the same kind (Gripper carries none). Attributes grip_force_n /
+        max_force_n, when an object has them, set the force. `overrides` replace fields afterwards."""
         if isinstance(gripper, GripperSpec):
             return replace(gripper, **overrides)
         kind = str(getattr(gripper, "kind", "parallel"))
@@ -146,20 +149,48 @@ class GripperSpec:
             if force:
                 values["grip_force_n"] = float(force)
                 break
-        for attr in (
-            "cup_diameter_m",
-            "finger_length_m",
-            "finger_width_m",
-            "finger_thickness_m",
-            "tip_beyond_tcp_m",
-            "closing_speed_m_s",
-            "vacuum_kpa",
-        ):
+        finger = getattr(gripper, "finger", None)
+        if finger is not None:
+            values["finger_length_m"] = float(finger.length_m)
+            values["finger_thickness_m"] = float(finger.thickness_m)
+            values["finger_width_m"] = float(finger.width_m)
+            values["tip_beyond_tcp_m"] = float(finger.tip_beyond_tcp_m)
+        for attr in ("cup_diameter_m", "closing_speed_m_s", "vacuum_kpa"):
             value = getattr(gripper, attr, None)
             if value:
                 values[attr] = float(value)
+        if getattr(gripper, "cup_stroke_m", 0.0):
+            values["bellows_travel_m"] = float(gripper.cup_stroke_m)
+        shapes_fn = getattr(gripper, "collision_shapes", None)
+        if callable(shapes_fn):
+            shapes = list(shapes_fn(stroke) if kind == "parallel" and stroke > 0 else shapes_fn())
+            if kind == "parallel" and finger is not None:
+                shapes = shapes[:-2]  # the two finger boxes come last; physics moves its own fingers
+            body = []
+            for sh in shapes:
+                pose = np.asarray(sh.link_from_shape, dtype=np.float64)
+                reach = _shape_max_z(str(sh.kind), tuple(float(v) for v in sh.size), pose)
+                travel = float(values.get("bellows_travel_m", base.bellows_travel_m))
+                if kind == "suction" and reach > -travel - 1e-3:
+                    continue  # the cup itself: physics models it on its bellows
+                body.append((str(sh.kind), tuple(float(v) for v in sh.size), pose))
+            values["body_shapes"] = tuple(body)
         values.update(overrides)
         return replace(base, **values)
+
+
+def _shape_max_z(kind: str, size: tuple[float, ...], tcp_from_shape: FloatArray) -> float:
+    """Largest TCP-frame z reached by a primitive (python-fcl sizes), metres."""
+    rot, centre = tcp_from_shape[:3, :3], tcp_from_shape[:3, 3]
+    if kind == "box":
+        return float(centre[2] + np.abs(rot[2, :]) @ (np.asarray(size) / 2.0))
+    if kind == "sphere":
+        return float(centre[2] + size[0])
+    radius, length = size[0], size[1]
+    axis_z = abs(float(rot[2, 2]))
+    radial = math.sqrt(max(0.0, 1.0 - axis_z**2)) * radius
+    half = length / 2.0 * axis_z
+    return float(centre[2] + half + (radius if kind == "capsule" else radial))
 
 
 @dataclass(frozen=True)
@@ -332,6 +363,26 @@ def _object_body_xml(
     )
 
 
+def _body_geoms(shapes: tuple[tuple[str, tuple[float, ...], FloatArray], ...]) -> str:
+    """MJCF geoms of the hand's rigid shapes (TCP frame, python-fcl sizes); 1 kg spread over them."""
+    out = []
+    mass = 1.0 / max(len(shapes), 1)
+    for i, (kind, size, pose) in enumerate(shapes):
+        if kind == "box":
+            msize = _fmt(np.asarray(size) / 2.0)
+        elif kind in ("cylinder", "capsule"):
+            msize = _fmt([size[0], size[1] / 2.0])
+        elif kind == "sphere":
+            msize = _fmt([size[0]])
+        else:
+            raise InputError(f"hand shape {i}: kind must be box, cylinder, capsule or sphere, got {kind!r}")
+        out.append(
+            f'<geom name="hand_body{i}" type="{kind}" size="{msize}" pos="{_fmt(pose[:3, 3])}" '
+            f'quat="{_fmt(_quat_wxyz(pose[:3, :3]))}" condim="3" mass="{mass:.6g}"/>'
+        )
+    return "".join(out)
+
+
 def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -> tuple[str, str, str]:
     """(hand body xml, actuator xml, contact-exclude xml) of the mocap-driven hand; the body frame is the TCP."""
     pos, quat = _fmt(world_from_tcp[:3, 3]), _fmt(_quat_wxyz(world_from_tcp[:3, :3]))
@@ -340,8 +391,8 @@ def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -
         tip = spec.tip_beyond_tcp_m
         length, width, thick = spec.finger_length_m, spec.finger_width_m, spec.finger_thickness_m
         half_stroke = spec.stroke_m / 2.0
-        palm_x = spec.stroke_m + 2 * thick + 0.02
-        palm_z = tip - length - spec.palm_depth_m / 2.0
+        palm = spec.palm_size_m
+        default_body = [("box", palm, make_pose(translation=[0.0, 0.0, tip - length - palm[2] / 2.0]))]
         fz = tip - length / 2.0
         band = 0.008  # the servo saturates at the force limit once 8 mm behind its target
         kp = spec.grip_force_n / band
@@ -360,9 +411,7 @@ def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -
             )
         body = (
             f'<body name="hand" pos="{pos}" quat="{quat}" gravcomp="1"><freejoint name="hand_free"/>'
-            f'<geom name="hand_palm" type="box" size="{palm_x / 2:.12g} {max(width, 0.04) / 2:.12g} '
-            f'{spec.palm_depth_m / 2:.12g}" pos="0 0 {palm_z:.12g}" condim="3" mass="1"/>'
-            f"{''.join(fingers)}</body>"
+            f"{_body_geoms(spec.body_shapes or tuple(default_body))}{''.join(fingers)}</body>"
         )
         limit = half_stroke + band
         actuators = "".join(
@@ -376,10 +425,11 @@ def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -
     r = spec.cup_diameter_m / 2.0
     travel = spec.bellows_travel_m
     cup_friction = f'friction="{spec.cup_friction:.6g} {spec.torsional_friction_m:.6g} 0.0001"'
+    tool_z = -travel - cup_h - spec.tool_length_m / 2.0 - 0.002
+    tool = (("cylinder", (spec.tool_radius_m, spec.tool_length_m), make_pose(translation=[0.0, 0.0, tool_z])),)
     body = (
         f'<body name="hand" pos="{pos}" quat="{quat}" gravcomp="1"><freejoint name="hand_free"/>'
-        f'<geom name="hand_tool" type="cylinder" size="{spec.tool_radius_m:.12g} {spec.tool_length_m / 2:.12g}" '
-        f'pos="0 0 {-travel - cup_h - spec.tool_length_m / 2 - 0.002:.12g}" condim="3" mass="1"/>'
+        f"{_body_geoms(spec.body_shapes or tool)}"
         f'<body name="hand_cup" gravcomp="1">'
         f'<joint name="bellows" type="slide" axis="0 0 -1" range="0 {travel:.12g}" limited="true" '
         f'stiffness="{spec.bellows_stiffness_n_m:.6g}" damping="40"/>'
