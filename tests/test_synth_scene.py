@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import normpos_grasp.sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco loads)
+
 pytest.importorskip("mujoco")
 fcl = pytest.importorskip("fcl")
 trimesh = pytest.importorskip("trimesh")

@@ -146,7 +146,11 @@ _GL_FAILED: str | None = None
 
 
 def _gl_context(width: int, height: int) -> Any:
-    """A process-wide OpenGL context (created once); raises SimulationError when none can be made."""
+    """A process-wide OpenGL context (created and probed once); raises SimulationError when none works.
+
+    The probe builds a MuJoCo render context on a one-geom model, which fails cleanly when the GL backend
+    picked at `import mujoco` time (MUJOCO_GL) cannot render here.
+    """
     global _GL_CONTEXT, _GL_FAILED
     if _GL_CONTEXT is not None:
         return _GL_CONTEXT
@@ -157,8 +161,13 @@ def _gl_context(width: int, height: int) -> Any:
 
         ctx = mujoco.GLContext(max(width, 64), max(height, 64))
         ctx.make_current()
-    except Exception as exc:  # any GL/EGL failure means 'no OpenGL here'
-        _GL_FAILED = f"no OpenGL context for MuJoCo (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): {exc}"
+        probe = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size="0.1"/></worldbody></mujoco>')
+        mujoco.MjrContext(probe, mujoco.mjtFontScale.mjFONTSCALE_100).free()
+    except Exception as exc:  # any GL/EGL failure means "no OpenGL here"
+        _GL_FAILED = (
+            f"no OpenGL context for MuJoCo (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): {exc}; on a headless machine "
+            "set MUJOCO_GL=egl before anything imports mujoco"
+        )
         raise SimulationError(_GL_FAILED) from exc
     _GL_CONTEXT = ctx
     return ctx
