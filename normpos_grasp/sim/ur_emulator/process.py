@@ -36,6 +36,16 @@ def dashboard_request(host: str, line: str, timeout_s: float = 2.0, port: int = 
         return reply.decode().strip()
 
 
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: the emulator gets SIGTERM when the process that started it dies (no orphaned controllers)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
+    except OSError:
+        pass
+
+
 class EmulatorProcess:
     """A loopback UR controller in its own process. Use as a context manager.
 
@@ -80,7 +90,9 @@ class EmulatorProcess:
         out = open(self.log_path, "ab") if self.log_path is not None else None  # noqa: SIM115 - closed in stop()
         self._log_file = out
         env = dict(os.environ)
-        self.proc = subprocess.Popen(cmd, stdout=out or subprocess.DEVNULL, stderr=out, env=env)
+        self.proc = subprocess.Popen(
+            cmd, stdout=out or subprocess.DEVNULL, stderr=out, env=env, preexec_fn=_die_with_parent
+        )
         deadline = time.monotonic() + self.ready_timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -89,10 +101,13 @@ class EmulatorProcess:
                     f"(command: {' '.join(cmd)}); see {self.log_path or 'its stderr'}"
                 )
             try:
-                if dashboard_request(self.host, "robotmode", timeout_s=1.0).startswith("Robotmode"):
-                    return self
+                reply = dashboard_request(self.host, "emu state", timeout_s=1.0)
             except OSError:
                 time.sleep(0.1)
+                continue
+            if f"pid={self.proc.pid} " in reply:
+                return self
+            time.sleep(0.1)  # another process answers on this address: ours will fail to bind and exit
         self.stop()
         raise DriverTimeout(f"emulator on {self.host} not ready within {self.ready_timeout_s} s")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import os
 import socket
 import struct
 import threading
@@ -33,7 +34,7 @@ RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 def load_ik(model: str) -> IKSolver | None:
     """The kinematics module's IK for `model` if it is available, else None (linear moves then fail loudly)."""
     try:
-        from normpos_grasp.kinematics import Robot  # type: ignore[attr-defined]
+        from normpos_grasp.kinematics import Robot
 
         robot = Robot.load(model)
     except (ImportError, AttributeError, NormposError) as exc:
@@ -57,6 +58,7 @@ class _RtdeConn:
     decimation: int = 1
     inputs: dict[int, tuple[list[str], list[str], struct.Struct]] = field(default_factory=dict)
     started: bool = False
+    send_lock: threading.Lock = field(default_factory=threading.Lock)
     sent: int = 0
     dropped: int = 0
 
@@ -195,11 +197,15 @@ class UREmulator:
 
     # ------------------------------------------------------------------ servers
     def _accept_loop(self, lst: socket.socket, handler: Callable[[socket.socket, Any], None]) -> None:
+        lst.settimeout(0.2)
         while not self._stop.is_set():
             try:
                 sock, addr = lst.accept()
+            except TimeoutError:
+                continue
             except OSError:
                 return
+            sock.settimeout(None)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._spawn(handler, sock, addr)
 
@@ -208,14 +214,15 @@ class UREmulator:
             sock.close()
             return
         conn = _RtdeConn(sock, addr)
+        log.debug("RTDE connection from %s", addr)
         with self._conn_lock:
             self._conns.append(conn)
         try:
             while not self._stop.is_set():
                 kind, payload = P.recv_packet(sock)
                 self._handle_rtde(conn, kind, payload)
-        except (P.PeerClosed, OSError):
-            pass
+        except (P.PeerClosed, OSError) as exc:
+            log.debug("RTDE connection %s closed: %s", addr, exc)
         except NormposError as exc:
             log.error("RTDE client %s: %s", addr, exc)
         finally:
@@ -228,7 +235,8 @@ class UREmulator:
                 sock.close()
 
     def _send(self, conn: _RtdeConn, data: bytes) -> None:
-        conn.sock.sendall(data)
+        with conn.send_lock:
+            conn.sock.sendall(data)
 
     def _handle_rtde(self, conn: _RtdeConn, kind: int, payload: bytes) -> None:
         if kind == P.REQUEST_PROTOCOL_VERSION:
@@ -275,8 +283,8 @@ class UREmulator:
             conn.inputs[recipe_id] = (names, types, P.recipe_struct(types))
             self._send(conn, P.pack_packet(kind, struct.pack(">B", recipe_id) + ",".join(types).encode()))
         elif kind == P.CONTROL_PACKAGE_START:
+            self._send(conn, P.pack_packet(kind, b"\x01"))  # the reply must precede the first data package
             conn.started = True
-            self._send(conn, P.pack_packet(kind, b"\x01"))
         elif kind == P.CONTROL_PACKAGE_PAUSE:
             conn.started = False
             self._send(conn, P.pack_packet(kind, b"\x01"))
@@ -295,6 +303,7 @@ class UREmulator:
             raise P.ProtocolError(f"unexpected RTDE packet type {kind} ({chr(kind)!r})")
 
     def _serve_script(self, sock: socket.socket, addr: Any) -> None:
+        log.debug("script connection from %s", addr)
         with self._conn_lock:
             self._other_socks.append(sock)
         buf = ""
@@ -350,6 +359,8 @@ class UREmulator:
                 while b"\n" in buf:
                     raw, buf = buf.split(b"\n", 1)
                     reply, close = self.dashboard(raw.decode("utf-8", errors="replace").strip())
+                    if not raw.startswith(b"running"):
+                        log.debug("dashboard %s: %r -> %r", addr, raw, reply)
                     sock.sendall(reply.encode() + b"\n")
                     if close:
                         return
@@ -454,7 +465,7 @@ class UREmulator:
                 with c.lock:
                     q = ",".join(f"{v:.6f}" for v in c.arm.q)
                     return (
-                        f"emu state q=[{q}] robot_mode={c.robot_mode} safety_mode={c.safety_mode} "
+                        f"emu state pid={os.getpid()} q=[{q}] robot_mode={c.robot_mode} safety_mode={c.safety_mode} "
                         f"program={'running' if c.program else 'stopped'} moving={c.arm.moving} "
                         f"commands={c.commands_seen} refused_scripts={len(c.refused_scripts)} "
                         f"overruns={self.overruns} dout={c.digital_out}"
@@ -506,6 +517,9 @@ class UREmulator:
                 continue
             values = P.flatten([g(snap) for g in conn.output_getters], conn.output_types)
             packet = P.pack_packet(P.DATA_PACKAGE, b"\x01" + conn.output_struct.pack(*values))
+            if not conn.send_lock.acquire(blocking=False):
+                conn.dropped += 1  # a reply is being written on this connection: skip one data package
+                continue
             try:
                 sent = conn.sock.send(packet, socket.MSG_DONTWAIT)
                 if sent != len(packet):
@@ -515,3 +529,5 @@ class UREmulator:
                 conn.dropped += 1
             except OSError:
                 conn.started = False
+            finally:
+                conn.send_lock.release()

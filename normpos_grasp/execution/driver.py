@@ -1,0 +1,474 @@
+"""The arm driver contract (`ArmDriver`) and the guarded base both drivers share.
+
+A driver connects, reports `ArmState`, runs joint paths, streamed trajectories and linear moves, stops, and drives
+a gripper through digital outputs. `GuardedDriver` implements the rules every driver follows, on top of a few
+backend primitives: every target is checked against `SafetyLimits` before anything is sent; a protective stop,
+e-stop, lost connection or timeout during a move stops the arm, raises a typed `DriverFault` and latches it, so
+nothing further is sent until `resume()`; a lost connection is never retried blindly: `resume()` reconnects and
+re-reads the state.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from normpos_grasp.errors import (
+    ConnectionLost,
+    DriverFault,
+    DriverTimeout,
+    EmergencyStop,
+    ProtectiveStop,
+    SafetyViolation,
+)
+from normpos_grasp.typing import ArrayLike, FloatArray
+
+from .safety import SafetyLimits
+
+log = logging.getLogger(__name__)
+
+SAFETY_BIT_PROTECTIVE = 1 << 2
+SAFETY_BIT_EMERGENCY = 1 << 7
+ROBOT_MODE_RUNNING = 7
+
+
+@dataclass(frozen=True)
+class ArmState:
+    """One snapshot of the arm. q, qd: (6,) rad, rad/s. base_from_tcp: (4, 4). timestamp: controller clock, s.
+
+    robot_mode (7 running), safety_mode (1 normal, 3 protective stop, 7 e-stop), runtime_state (2 playing).
+    digital_out, digital_in: standard bits 0-7, configurable 8-15, tool 16-17.
+    """
+
+    q: FloatArray
+    qd: FloatArray
+    base_from_tcp: FloatArray
+    timestamp: float
+    robot_mode: int
+    safety_mode: int
+    safety_status_bits: int
+    runtime_state: int
+    program_running: bool
+    digital_out: int
+    digital_in: int
+    received_at: float  # time.monotonic() of the read, s
+
+    @property
+    def protective_stopped(self) -> bool:
+        return bool(self.safety_status_bits & SAFETY_BIT_PROTECTIVE) or self.safety_mode == 3
+
+    @property
+    def emergency_stopped(self) -> bool:
+        return bool(self.safety_status_bits & SAFETY_BIT_EMERGENCY) or self.safety_mode in (6, 7)
+
+
+@dataclass(frozen=True)
+class GripperIO:
+    """A gripper wired to standard digital outputs (tool outputs with `tool=True`).
+
+    close_output: output set high to close (parallel) or to suck (suction). open_output: output pulsed high to open
+    (None: opening = close_output low). grip_detect_input: digital input high when a part is held (None: unknown).
+    settle_s: time the gripper needs to act, s.
+    """
+
+    close_output: int = 0
+    open_output: int | None = 1
+    grip_detect_input: int | None = None
+    settle_s: float = 0.3
+    tool: bool = False
+
+
+@dataclass(frozen=True)
+class DriverOptions:
+    """Timeouts and defaults. All times in seconds.
+
+    connect_timeout_s: connecting. stale_state_s: no fresh state for this long during a move = connection lost.
+    move_margin_s, move_factor: a move times out after move_factor * expected duration + move_margin_s.
+    poll_s: monitor period during moves. arrive_tol_rad: a move is complete when every joint is this close.
+    stop_decel: joint deceleration for stops, rad/s^2. stream_period_s: servo streaming period.
+    watchdog_s: controller-side watchdog while streaming (the program stops if no command arrives for this long).
+    """
+
+    connect_timeout_s: float = 10.0
+    stale_state_s: float = 0.5
+    move_margin_s: float = 5.0
+    move_factor: float = 2.0
+    poll_s: float = 0.004
+    arrive_tol_rad: float = 1e-4
+    stop_decel: float = 3.0
+    stream_period_s: float = 0.008
+    watchdog_s: float = 0.25
+
+
+@runtime_checkable
+class ArmDriver(Protocol):
+    """What execution needs from an arm. Every motion call checks its targets against `limits` first."""
+
+    limits: SafetyLimits
+
+    def connect(self) -> None: ...
+
+    def disconnect(self) -> None: ...
+
+    def state(self) -> ArmState: ...
+
+    def move_joints(self, waypoints: ArrayLike, speed: float, accel: float, timeout_s: float | None = None) -> ArmState:
+        """Run through joint waypoints (N, 6) with movej semantics (rad/s, rad/s^2); returns the final state."""
+        ...
+
+    def follow_trajectory(self, times: ArrayLike, q: ArrayLike) -> ArmState:
+        """Stream time-stamped joint samples (N,), (N, 6) with servoj; returns the final state."""
+        ...
+
+    def move_linear(self, base_from_tcp: ArrayLike, speed: float, accel: float) -> ArmState:
+        """Straight TCP line(s) to pose(s) (4, 4) or (N, 4, 4) in the base frame (m/s, m/s^2)."""
+        ...
+
+    def stop(self) -> None: ...
+
+    def gripper_open(self) -> None: ...
+
+    def gripper_close(self) -> None: ...
+
+    def grip_detected(self) -> bool: ...
+
+    def resume(self) -> None: ...
+
+    @property
+    def fault(self) -> DriverFault | None: ...
+
+
+def movej_duration(q_from: FloatArray, q_to: FloatArray, speed: float, accel: float) -> float:
+    """Duration (s) of a UR movej trapezoid between two configurations."""
+    d = float(np.max(np.abs(np.asarray(q_to) - np.asarray(q_from))))
+    if d == 0.0:
+        return 0.0
+    if d * accel < speed * speed:
+        return 2.0 * float(np.sqrt(d / accel))
+    return d / speed + speed / accel
+
+
+class GuardedDriver:
+    """Safety checks, fault latch and move monitoring on top of backend primitives (`_backend_*`)."""
+
+    def __init__(self, limits: SafetyLimits, gripper: GripperIO | None = None, options: DriverOptions | None = None):
+        self.limits = limits
+        self.gripper = gripper or GripperIO()
+        self.options = options or DriverOptions()
+        self._fault: DriverFault | None = None
+        self.commands_sent = 0
+
+    # ------------------------------------------------------------------ backend primitives (override)
+    def _backend_connect(self) -> None:
+        raise NotImplementedError
+
+    def _backend_disconnect(self) -> None:
+        raise NotImplementedError
+
+    def _backend_state(self) -> ArmState:
+        raise NotImplementedError
+
+    def _backend_connected(self) -> bool:
+        raise NotImplementedError
+
+    def _backend_move_path(self, waypoints: FloatArray, speed: float, accel: float) -> None:
+        """Start (asynchronously) a movej path through `waypoints` (N, 6)."""
+        raise NotImplementedError
+
+    def _backend_move_linear(self, poses: FloatArray, speed: float, accel: float) -> None:
+        raise NotImplementedError
+
+    def _backend_servo(self, q: FloatArray, period_s: float) -> None:
+        raise NotImplementedError
+
+    def _backend_servo_begin(self) -> None:
+        raise NotImplementedError
+
+    def _backend_servo_end(self) -> None:
+        raise NotImplementedError
+
+    def _backend_stop(self, decel: float) -> None:
+        raise NotImplementedError
+
+    def _backend_link_lost(self) -> None:
+        """The state stream is gone: halt the arm by a path that does not need it (no motion is re-sent)."""
+        raise NotImplementedError
+
+    def _backend_busy(self) -> bool:
+        """True while the controller still executes the last motion."""
+        raise NotImplementedError
+
+    def _backend_set_output(self, index: int, level: bool, tool: bool) -> None:
+        raise NotImplementedError
+
+    def _backend_reset_faults(self) -> None:
+        """Make the backend ready for motion again after an unlocked stop (e.g. re-upload the control script)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def fault(self) -> DriverFault | None:
+        return self._fault
+
+    def connect(self) -> None:
+        self._backend_connect()
+        st = self._backend_state()
+        self._check_state(st, during="connect", stop=False)
+
+    def disconnect(self) -> None:
+        self._backend_disconnect()
+
+    def state(self) -> ArmState:
+        if not self._backend_connected():
+            raise self._latch(ConnectionLost("not connected to the controller; call connect() or resume()"))
+        return self._backend_state()
+
+    def resume(self) -> None:
+        """Clear a latched fault after the cause is fixed: reconnect if needed, re-read state, re-arm the program.
+
+        Raises the fault again if the controller is still stopped (protective stop not unlocked, e-stop pressed).
+        """
+        if self._fault is not None:
+            log.info("resume after %s", type(self._fault).__name__)
+        if not self._backend_connected() or isinstance(self._fault, ConnectionLost):
+            self._backend_disconnect()
+            self._backend_connect()
+        st = self._fresh_state(time.monotonic())
+        if st.emergency_stopped:
+            raise self._latch(EmergencyStop("emergency stop still active: release it, power on, then resume()"))
+        if st.protective_stopped:
+            raise self._latch(
+                ProtectiveStop("protective stop still active: unlock it (dashboard / pendant), then resume()")
+            )
+        self._backend_reset_faults()
+        self._fault = None
+
+    def _fresh_state(self, after: float) -> ArmState:
+        """The first state received after `after` (time.monotonic()); ConnectionLost if none within stale_state_s."""
+        deadline = after + max(self.options.stale_state_s, 0.1)
+        ts0 = self._backend_state().timestamp
+        while True:
+            st = self._backend_state()
+            if st.received_at > after and st.timestamp > ts0 + 0.003:  # at least one full controller cycle later
+                return st
+            if time.monotonic() > deadline:
+                raise self._latch(
+                    ConnectionLost(f"no fresh robot state within {self.options.stale_state_s} s; check the link")
+                )
+            time.sleep(0.002)
+
+    def stop(self) -> None:
+        """Decelerate to rest (allowed even when faulted)."""
+        if self._backend_connected():
+            self._backend_stop(self.options.stop_decel)
+
+    def move_joints(self, waypoints: ArrayLike, speed: float, accel: float, timeout_s: float | None = None) -> ArmState:
+        self._require_ready()
+        wps = np.asarray(waypoints, dtype=np.float64)
+        if wps.ndim == 1:
+            wps = wps[None]
+        self.limits.check_joint_speed(speed, accel)
+        self.limits.check_joints(wps, "waypoint")
+        start = self.state()
+        self._check_state(start, during="move start", stop=False)
+        chain = np.vstack([start.q[None], wps])
+        for i in range(len(wps)):
+            self.limits.check_segment(chain[i], chain[i + 1], f"segment {i}")
+        expected = sum(movej_duration(chain[i], chain[i + 1], speed, accel) for i in range(len(wps)))
+        timeout = (
+            timeout_s if timeout_s is not None else expected * self.options.move_factor + self.options.move_margin_s
+        )
+        self.commands_sent += 1
+        self._backend_move_path(wps, speed, accel)
+        return self._monitor(wps[-1], timeout, "move_joints")
+
+    def move_linear(self, base_from_tcp: ArrayLike, speed: float, accel: float) -> ArmState:
+        self._require_ready()
+        poses = np.asarray(base_from_tcp, dtype=np.float64)
+        if poses.ndim == 2:
+            poses = poses[None]
+        self.limits.check_tool_speed(speed, accel)
+        start = self.state()
+        self._check_state(start, during="move start", stop=False)
+        prev = start.base_from_tcp[:3, 3]
+        length = 0.0
+        for i, pose in enumerate(poses):
+            self.limits.check_tcp_pose(pose, f"linear target {i}")
+            seg = np.linspace(prev, pose[:3, 3], 16)  # the line itself stays in the box (it is convex: ends suffice)
+            self.limits.check_tcp_positions(seg, f"linear segment {i}")
+            length += float(np.linalg.norm(pose[:3, 3] - prev))
+            prev = pose[:3, 3]
+        timeout = (length / speed + speed / accel) * self.options.move_factor + self.options.move_margin_s
+        self.commands_sent += 1
+        self._backend_move_linear(poses, speed, accel)
+        return self._monitor_linear(poses[-1], timeout)
+
+    def follow_trajectory(self, times: ArrayLike, q: ArrayLike) -> ArmState:
+        """Stream a time-parameterised joint trajectory with servoj at `stream_period_s`, then settle on its end.
+
+        The trajectory is checked whole before the first sample is sent (limits, workspace, speed and acceleration
+        caps, and its start must be the current joints). While streaming, the controller-side watchdog stops the
+        program if this process stalls; a client-side deadline check stops the arm if the stream falls behind.
+        """
+        self._require_ready()
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        qs = np.asarray(q, dtype=np.float64).reshape(-1, 6)
+        self.limits.check_trajectory(t, qs)
+        start = self.state()
+        self._check_state(start, during="stream start", stop=False)
+        gap = float(np.max(np.abs(qs[0] - start.q)))
+        if gap > 0.01:
+            raise SafetyViolation(
+                f"trajectory starts {gap:.4f} rad away from the current joints (> 0.01 rad); move there first",
+                detail={"start": qs[0], "current": start.q},
+            )
+        period = self.options.stream_period_s
+        grid = np.arange(t[0], t[-1] + period, period)
+        samples = np.stack([np.interp(grid, t, qs[:, j]) for j in range(6)], axis=1)
+        self.commands_sent += 1
+        self._backend_servo_begin()
+        t0 = time.monotonic()
+        try:
+            for k, target in enumerate(samples):
+                deadline = t0 + k * period
+                now = time.monotonic()
+                if now - deadline > max(0.1, 10 * period):
+                    self._backend_stop(self.options.stop_decel)
+                    raise self._latch(
+                        DriverTimeout(f"stream fell {now - deadline:.3f} s behind schedule at sample {k}; arm stopped")
+                    )
+                if deadline > now:
+                    time.sleep(deadline - now)
+                st = self._backend_state()
+                self._check_state(st, during=f"stream sample {k}", stop=True)
+                self._backend_servo(target, period)
+        finally:
+            if self._fault is None:
+                self._settle_servo(samples[-1])
+            self._backend_servo_end()
+        return self._monitor(qs[-1], self.options.move_margin_s, "follow_trajectory")
+
+    def _settle_servo(self, target: FloatArray) -> None:
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            st = self._backend_state()
+            self._check_state(st, during="stream settle", stop=True)
+            if float(np.max(np.abs(st.q - target))) < self.options.arrive_tol_rad:
+                return
+            self._backend_servo(target, self.options.stream_period_s)
+            time.sleep(self.options.stream_period_s)
+
+    # ------------------------------------------------------------------ gripper
+    def gripper_close(self) -> None:
+        self._require_ready()
+        g = self.gripper
+        if g.open_output is not None:
+            self._backend_set_output(g.open_output, False, g.tool)
+        self._backend_set_output(g.close_output, True, g.tool)
+        self._wait_io(g.settle_s)
+
+    def gripper_open(self) -> None:
+        self._require_ready()
+        g = self.gripper
+        self._backend_set_output(g.close_output, False, g.tool)
+        if g.open_output is not None:
+            self._backend_set_output(g.open_output, True, g.tool)
+        self._wait_io(g.settle_s)
+
+    def grip_detected(self) -> bool:
+        """True when the grip-detect input is high; DriverFault if the gripper has no such input."""
+        g = self.gripper
+        if g.grip_detect_input is None:
+            raise DriverFault("this gripper has no grip-detect input configured (GripperIO.grip_detect_input)")
+        return bool(self.state().digital_in >> g.grip_detect_input & 1)
+
+    def _wait_io(self, settle_s: float) -> None:
+        end = time.monotonic() + settle_s
+        while time.monotonic() < end:
+            self._check_state(self.state(), during="gripper", stop=True)
+            time.sleep(min(0.02, max(0.0, end - time.monotonic())))
+
+    # ------------------------------------------------------------------ monitoring
+    def _require_ready(self) -> None:
+        if self._fault is not None:
+            raise DriverFault(
+                f"driver halted by {type(self._fault).__name__}: {self._fault}; nothing was sent. "
+                "Fix the cause and call resume()"
+            )
+
+    def _latch(self, fault: DriverFault) -> DriverFault:
+        self._fault = fault
+        log.error("driver fault: %s", fault)
+        return fault
+
+    def _check_state(self, st: ArmState, during: str, stop: bool) -> None:
+        """Raise (and latch) the typed fault the state shows; stop the arm first when `stop`."""
+        fault: DriverFault | None = None
+        if st.emergency_stopped:
+            fault = EmergencyStop(f"emergency stop during {during} (safety_mode {st.safety_mode})")
+        elif st.protective_stopped:
+            fault = ProtectiveStop(f"protective stop during {during} (safety_mode {st.safety_mode})")
+        elif time.monotonic() - st.received_at > self.options.stale_state_s or not self._backend_connected():
+            fault = ConnectionLost(
+                f"no fresh robot state for {time.monotonic() - st.received_at:.2f} s during {during}; "
+                "not retrying: reconnect with resume()"
+            )
+        elif st.robot_mode != ROBOT_MODE_RUNNING:
+            fault = DriverFault(f"robot not running (robot_mode {st.robot_mode}) during {during}: power on first")
+        elif not st.program_running:
+            fault = DriverFault(f"control program not running on the controller during {during}")
+        if fault is not None:
+            if stop:
+                try:
+                    if isinstance(fault, ConnectionLost):
+                        self._backend_link_lost()
+                    elif not isinstance(fault, EmergencyStop | ProtectiveStop):
+                        self._backend_stop(self.options.stop_decel)
+                except (OSError, RuntimeError, DriverFault) as exc:
+                    log.warning("stop after %s failed: %s", type(fault).__name__, exc)
+            raise self._latch(fault)
+
+    def _monitor(self, q_goal: FloatArray, timeout_s: float, what: str) -> ArmState:
+        """Poll state until the arm rests at q_goal; faults and timeouts stop the arm and raise."""
+        start = time.monotonic()
+        while True:
+            st = self._backend_state()
+            self._check_state(st, during=what, stop=True)
+            at_goal = float(np.max(np.abs(st.q - q_goal))) <= max(self.options.arrive_tol_rad, 1e-5)
+            if at_goal and not self._backend_busy():
+                return st
+            if not self._backend_busy() and float(np.max(np.abs(st.qd))) < 1e-6 and not at_goal:
+                # the controller ended the motion elsewhere (e.g. a stop from another client)
+                time.sleep(self.options.poll_s)
+                st2 = self._backend_state()
+                self._check_state(st2, during=what, stop=True)
+                if not self._backend_busy() and float(np.max(np.abs(st2.q - q_goal))) > self.options.arrive_tol_rad:
+                    raise self._latch(
+                        DriverFault(
+                            f"{what} ended {float(np.max(np.abs(st2.q - q_goal))):.4f} rad short of its goal "
+                            "without a fault from the controller"
+                        )
+                    )
+            if time.monotonic() - start > timeout_s:
+                self._backend_stop(self.options.stop_decel)
+                raise self._latch(DriverTimeout(f"{what} did not finish within {timeout_s:.1f} s; arm stopped"))
+            time.sleep(self.options.poll_s)
+
+    def _monitor_linear(self, goal: FloatArray, timeout_s: float) -> ArmState:
+        start = time.monotonic()
+        while True:
+            st = self._backend_state()
+            self._check_state(st, during="move_linear", stop=True)
+            if not self._backend_busy():
+                err = float(np.linalg.norm(st.base_from_tcp[:3, 3] - goal[:3, 3]))
+                if err > 1e-3:
+                    raise self._latch(DriverFault(f"move_linear ended {err * 1000:.2f} mm from its goal"))
+                return st
+            if time.monotonic() - start > timeout_s:
+                self._backend_stop(self.options.stop_decel)
+                raise self._latch(DriverTimeout(f"move_linear did not finish within {timeout_s:.1f} s; arm stopped"))
+            time.sleep(self.options.poll_s)

@@ -1,0 +1,265 @@
+"""Execute a pick-and-place plan (plan.json from `normpos-grasp plan`) on an `ArmDriver`; dry run by default.
+
+plan.json fields used here: `status` ("ok" or a reason), `robot` (UR model), `world_from_base` (4x4),
+`joint_waypoints` (ordered `[{name, q}]`, rad), optional `trajectory` (time-stamped joint samples:
+`{"samples": [{t, q}, ...]}` as `normpos-grasp plan` writes it, a list of `{t, q}`, or
+`{"t": [...], "q": [[...]]}`), `tool` (`flange_from_tcp` 4x4). Everything is checked against the limits before
+the first command; a plan that fails any check is never sent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from normpos_grasp.errors import DriverFault, InputError, SafetyViolation
+from normpos_grasp.typing import FloatArray
+from normpos_grasp.validation import as_float_array, check_pose
+
+from .driver import ArmDriver
+from .safety import SafetyLimits
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ExecuteOptions:
+    """How a plan is run. speed (rad/s) and accel (rad/s^2): movej caps between waypoints when the plan has no
+    trajectory (and for the approach to its first waypoint). close_at / open_at: waypoint names after which the
+    gripper closes / opens. start_tol_rad: farther than this from the first waypoint, the arm first moves there.
+    final_tol_rad: the executed plan must end this close to its last waypoint (else DriverFault)."""
+
+    speed: float = 0.8
+    accel: float = 1.2
+    close_at: tuple[str, ...] = ("grasp",)
+    open_at: tuple[str, ...] = ("place",)
+    open_first: bool = True
+    start_tol_rad: float = 1e-3
+    final_tol_rad: float = 1e-3
+    check_grip: bool = True
+
+
+@dataclass(frozen=True)
+class ParsedPlan:
+    """The parts of plan.json execution needs. names: waypoint names; q: (N, 6) rad; traj_t: (M,) s, traj_q: (M, 6)."""
+
+    robot: str
+    names: tuple[str, ...]
+    q: FloatArray
+    traj_t: FloatArray | None
+    traj_q: FloatArray | None
+    flange_from_tcp: FloatArray | None
+    world_from_base: FloatArray
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    name: str
+    kind: str  # "approach", "trajectory", "movej", "gripper_close", "gripper_open"
+    duration_s: float
+    error_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class ExecutionReport:
+    """Outcome of `execute_plan`. status: "dry_run" (checked, nothing sent) or "executed".
+
+    final_q: (6,) joints at the end (None in a dry run without state). final_error_rad: max joint error to the
+    plan's last waypoint. grip_detected: the grip-detect input after closing (None when not configured/checked).
+    """
+
+    status: str
+    steps: tuple[StepRecord, ...] = ()
+    final_q: FloatArray | None = None
+    final_error_rad: float | None = None
+    grip_detected: bool | None = None
+    commands_sent: int = 0
+    messages: tuple[str, ...] = field(default_factory=tuple)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "status": self.status,
+            "steps": [s.__dict__ for s in self.steps],
+            "final_q": None if self.final_q is None else self.final_q.tolist(),
+            "final_error_rad": self.final_error_rad,
+            "grip_detected": self.grip_detected,
+            "commands_sent": self.commands_sent,
+            "messages": list(self.messages),
+        }
+
+
+def load_plan(path: str | Path) -> dict[str, Any]:
+    """Read plan.json; InputError if it is missing or not JSON."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise InputError(f"plan file {p} does not exist; create it with `normpos-grasp plan`") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"plan file {p} is not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise InputError(f"plan file {p}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def parse_plan(plan: dict[str, Any]) -> ParsedPlan:
+    """Validate the fields execution needs; InputError naming the bad field."""
+    status = plan.get("status")
+    if status != "ok":
+        raise InputError(f"plan status is {status!r}, not 'ok': there is nothing to execute (see its candidates)")
+    robot = plan.get("robot")
+    if isinstance(robot, dict):
+        robot = robot.get("model", robot.get("name"))
+    if not isinstance(robot, str):
+        raise InputError(f"plan.robot: expected a UR model name, got {robot!r}")
+    wps = plan.get("joint_waypoints")
+    if not isinstance(wps, list) or not wps:
+        raise InputError("plan.joint_waypoints: expected a non-empty list of {name, q}")
+    names: list[str] = []
+    qs: list[FloatArray] = []
+    for i, wp in enumerate(wps):
+        if not isinstance(wp, dict) or "q" not in wp:
+            raise InputError(f"plan.joint_waypoints[{i}]: expected {{name, q}}, got {wp!r}")
+        names.append(str(wp.get("name", f"waypoint_{i}")))
+        qs.append(as_float_array(wp["q"], f"plan.joint_waypoints[{i}].q", (6,)))
+    traj_t = traj_q = None
+    traj = plan.get("trajectory")
+    if traj:
+        if isinstance(traj, dict) and isinstance(traj.get("samples"), list):
+            traj = traj["samples"]  # normpos-grasp plan: {dt_s, duration_s, samples: [{t, q}]}
+        if isinstance(traj, dict):
+            t_raw = traj.get("t", traj.get("times", traj.get("time_s")))
+            q_raw = traj.get("q", traj.get("positions"))
+        elif isinstance(traj, list):
+            t_raw = [s.get("t", s.get("time_s")) for s in traj]
+            q_raw = [s.get("q") for s in traj]
+        else:
+            raise InputError(
+                f"plan.trajectory: expected a list of {{t, q}} or {{t: [...], q: [...]}}, got {type(traj)}"
+            )
+        if t_raw is None or q_raw is None:
+            raise InputError("plan.trajectory: needs time stamps ('t') and joint samples ('q')")
+        traj_t = as_float_array(t_raw, "plan.trajectory.t", (None,))
+        traj_q = as_float_array(q_raw, "plan.trajectory.q", (traj_t.shape[0], 6))
+    tool = plan.get("tool") or {}
+    flange_from_tcp = (
+        check_pose(tool["flange_from_tcp"], "plan.tool.flange_from_tcp") if "flange_from_tcp" in tool else None
+    )
+    wfb = check_pose(plan.get("world_from_base", np.eye(4)), "plan.world_from_base")
+    return ParsedPlan(robot.lower(), tuple(names), np.stack(qs), traj_t, traj_q, flange_from_tcp, wfb)
+
+
+def check_plan(parsed: ParsedPlan, limits: SafetyLimits) -> SafetyLimits:
+    """Check every waypoint, every joint segment and the trajectory; returns the limits used (with the plan's tool).
+
+    Raises SafetyViolation (nothing sent) or InputError (plan for another robot)."""
+    if parsed.robot != limits.model:
+        raise InputError(f"plan is for {parsed.robot!r} but the limits are for {limits.model!r}; wrong robot?")
+    if parsed.flange_from_tcp is not None:
+        limits = replace(limits, flange_from_tcp=parsed.flange_from_tcp)
+    limits.check_joints(parsed.q, "waypoint")
+    for i in range(len(parsed.q) - 1):
+        limits.check_segment(parsed.q[i], parsed.q[i + 1], f"segment {parsed.names[i]}->{parsed.names[i + 1]}")
+    if parsed.traj_t is not None and parsed.traj_q is not None:
+        limits.check_trajectory(parsed.traj_t, parsed.traj_q)
+    return limits
+
+
+def _split_trajectory(parsed: ParsedPlan) -> list[tuple[FloatArray, FloatArray]]:
+    """Trajectory slices between consecutive waypoints (matched in order to their nearest samples)."""
+    assert parsed.traj_t is not None and parsed.traj_q is not None
+    idx = [0]
+    for k in range(1, len(parsed.q)):
+        start = idx[-1]
+        d = np.max(np.abs(parsed.traj_q[start:] - parsed.q[k]), axis=1)
+        j = start + int(np.argmin(d))
+        if d[j - start] > 1e-3:
+            raise SafetyViolation(
+                f"trajectory does not pass through waypoint {parsed.names[k]!r} (closest sample "
+                f"{d[j - start]:.4f} rad away); the plan is inconsistent, nothing was sent"
+            )
+        idx.append(j)
+    return [(parsed.traj_t[a : b + 1], parsed.traj_q[a : b + 1]) for a, b in zip(idx[:-1], idx[1:], strict=True)]
+
+
+def execute_plan(
+    driver: ArmDriver | None,
+    plan: dict[str, Any],
+    limits: SafetyLimits,
+    dry_run: bool = True,
+    options: ExecuteOptions | None = None,
+) -> ExecutionReport:
+    """Check `plan` against `limits` and, unless `dry_run`, run it on `driver` (connected).
+
+    The whole plan is checked before the first command. Faults raise the driver's typed DriverFault subclass
+    (ProtectiveStop, EmergencyStop, ConnectionLost, DriverTimeout) with the arm stopped.
+    """
+    opts = options or ExecuteOptions()
+    parsed = parse_plan(plan)
+    used = check_plan(parsed, limits)
+    segments = _split_trajectory(parsed) if parsed.traj_t is not None else None
+    messages = [f"{len(parsed.q)} waypoints: {', '.join(parsed.names)}"]
+    if parsed.traj_t is not None:
+        span = float(parsed.traj_t[-1] - parsed.traj_t[0])
+        messages.append(f"trajectory: {len(parsed.traj_t)} samples over {span:.2f} s")
+    if dry_run:
+        return ExecutionReport("dry_run", messages=(*messages, "dry run: nothing was sent"))
+    if driver is None:
+        raise InputError("execute_plan(dry_run=False) needs a connected driver")
+    if parsed.flange_from_tcp is not None and not np.allclose(used.flange_from_tcp, driver.limits.flange_from_tcp):
+        driver.limits = replace(driver.limits, flange_from_tcp=used.flange_from_tcp)
+    steps: list[StepRecord] = []
+    sent0 = getattr(driver, "commands_sent", 0)
+    start = driver.state()
+    if float(np.max(np.abs(start.q - parsed.q[0]))) > opts.start_tol_rad:
+        t0 = time.monotonic()
+        st = driver.move_joints(parsed.q[0][None], opts.speed, opts.accel)
+        steps.append(
+            StepRecord(parsed.names[0], "approach", time.monotonic() - t0, float(np.max(np.abs(st.q - parsed.q[0]))))
+        )
+    if opts.open_first:
+        t0 = time.monotonic()
+        driver.gripper_open()
+        steps.append(StepRecord(parsed.names[0], "gripper_open", time.monotonic() - t0))
+    grip: bool | None = None
+    for k in range(1, len(parsed.q)):
+        name = parsed.names[k]
+        t0 = time.monotonic()
+        if segments is not None:
+            seg_t, seg_q = segments[k - 1]
+            st = driver.follow_trajectory(seg_t, seg_q) if len(seg_t) > 1 else driver.state()
+            kind = "trajectory"
+        else:
+            st = driver.move_joints(parsed.q[k][None], opts.speed, opts.accel)
+            kind = "movej"
+        steps.append(StepRecord(name, kind, time.monotonic() - t0, float(np.max(np.abs(st.q - parsed.q[k])))))
+        if name in opts.close_at:
+            t0 = time.monotonic()
+            driver.gripper_close()
+            steps.append(StepRecord(name, "gripper_close", time.monotonic() - t0))
+            if opts.check_grip and getattr(getattr(driver, "gripper", None), "grip_detect_input", None) is not None:
+                grip = driver.grip_detected()
+                messages.append(f"grip detected: {grip}")
+        if name in opts.open_at:
+            t0 = time.monotonic()
+            driver.gripper_open()
+            steps.append(StepRecord(name, "gripper_open", time.monotonic() - t0))
+    final = driver.state()
+    err = float(np.max(np.abs(final.q - parsed.q[-1])))
+    if err > opts.final_tol_rad:
+        raise DriverFault(f"plan ended {err:.2e} rad from its last waypoint (tolerance {opts.final_tol_rad:.0e} rad)")
+    return ExecutionReport(
+        "executed",
+        tuple(steps),
+        final.q,
+        err,
+        grip,
+        getattr(driver, "commands_sent", 0) - sent0,
+        tuple(messages),
+    )

@@ -1,0 +1,252 @@
+"""`RtdeDriver`: the arm driver on ur_rtde (RTDEControlInterface, RTDEReceiveInterface, RTDEIOInterface).
+
+Moves are sent asynchronously (movej paths through `moveJ(path, asynchronous=True)`, linear paths through
+`moveL(path, asynchronous=True)`) and monitored here at `DriverOptions.poll_s`, so every move has a timeout and
+reacts to protective stops, e-stops and stale state within a poll period. Streaming uses `servoJ` with the
+controller-side RTDE watchdog armed; the control script is re-uploaded after a stream to disarm it.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import time
+from typing import Any
+
+import numpy as np
+
+from normpos_grasp.errors import ConnectionLost, DriverFault, MissingDependency
+from normpos_grasp.geometry.transforms import pose_from_ur, pose_to_ur
+from normpos_grasp.typing import FloatArray
+
+from .driver import ArmState, DriverOptions, GripperIO, GuardedDriver
+from .safety import SafetyLimits
+
+log = logging.getLogger(__name__)
+
+DASHBOARD_PORT = 29999
+_BUSY_GRACE_S = 0.2  # s: a just-started async move counts as busy until the controller reports it
+
+
+def _import_rtde() -> tuple[Any, Any, Any]:
+    try:
+        import rtde_control
+        import rtde_io
+        import rtde_receive
+    except ImportError as exc:  # pragma: no cover - ur-rtde is a core dependency
+        raise MissingDependency("ur-rtde==1.6.5", "core", "RtdeDriver") from exc
+    return rtde_control, rtde_receive, rtde_io
+
+
+class RtdeDriver(GuardedDriver):
+    """Arm driver for a UR controller (or the loopback emulator) at `host`.
+
+    limits: SafetyLimits checked before sending. gripper: digital-output wiring. options: timeouts.
+    servo_lookahead_s, servo_gain: servoJ parameters for streaming.
+    """
+
+    def __init__(
+        self,
+        host: str,
+        limits: SafetyLimits,
+        gripper: GripperIO | None = None,
+        options: DriverOptions | None = None,
+        servo_lookahead_s: float = 0.1,
+        servo_gain: float = 300.0,
+    ) -> None:
+        super().__init__(limits, gripper, options)
+        self.host = host
+        self.servo_lookahead_s = servo_lookahead_s
+        self.servo_gain = servo_gain
+        self._c: Any = None
+        self._r: Any = None
+        self._io: Any = None
+        self._last_ts = -1.0
+        self._last_change = 0.0
+        self._move_started = 0.0
+        self._seen_running = False
+        self._streaming = False
+        self._link_lost = False
+
+    # ------------------------------------------------------------------ backend
+    def _backend_connect(self) -> None:
+        rtde_control, rtde_receive, rtde_io = _import_rtde()
+        try:
+            self._r = rtde_receive.RTDEReceiveInterface(self.host)
+            self._c = rtde_control.RTDEControlInterface(self.host)
+            self._io = rtde_io.RTDEIOInterface(self.host)
+        except RuntimeError as exc:
+            self._backend_disconnect()
+            text = str(exc)
+            if "already in use" in text:
+                raise DriverFault(
+                    f"controller {self.host} is already driven by another RTDE client (its input registers are in "
+                    f"use): disconnect that client first. ur_rtde said: {text}"
+                ) from exc
+            raise ConnectionLost(f"cannot connect to the UR controller at {self.host}: {text}") from exc
+        self._last_ts = -1.0
+        deadline = time.monotonic() + self.options.connect_timeout_s
+        while time.monotonic() < deadline:
+            self._backend_state()
+            if self._last_ts >= 0.0 and time.monotonic() - self._last_change < self.options.stale_state_s:
+                return
+            time.sleep(0.01)
+        raise ConnectionLost(
+            f"connected to {self.host} but no robot state arrived within {self.options.connect_timeout_s} s"
+        )
+
+    def _backend_disconnect(self) -> None:
+        # Order matters with ur_rtde 1.6.5: the control interface first (disconnect() also ends its internal
+        # reconnect loop after a dropped link); the IO interface aborts the process if disconnected on a dead
+        # socket, so it is reconnected first when its link is gone.
+        if self._c is not None:
+            try:
+                self._c.disconnect()
+            except RuntimeError as exc:
+                log.warning("disconnecting the control interface: %s", exc)
+        if self._io is not None:
+            try:
+                if self._link_lost:
+                    self._io.reconnect()
+                self._io.disconnect()
+            except RuntimeError as exc:
+                log.warning("disconnecting the IO interface: %s", exc)
+        if self._r is not None:
+            try:
+                self._r.disconnect()
+            except RuntimeError as exc:
+                log.warning("disconnecting the receive interface: %s", exc)
+        self._c = self._io = self._r = None
+        self._link_lost = False
+
+    def _backend_connected(self) -> bool:
+        return bool(self._r is not None and self._c is not None and not self._link_lost and self._r.isConnected())
+
+    def _backend_link_lost(self) -> None:
+        """Stop the program over a fresh dashboard connection (independent of RTDE); never re-send motion."""
+        self._link_lost = True
+        try:
+            with socket.create_connection((self.host, DASHBOARD_PORT), timeout=1.0) as sock:
+                f = sock.makefile("rwb", buffering=0)
+                f.readline()
+                f.write(b"stop\n")
+                log.warning("link lost: dashboard stop -> %s", f.readline().decode(errors="replace").strip())
+        except OSError as exc:
+            log.error("link lost and the dashboard is unreachable too (%s): the arm may still be moving", exc)
+        # ur_rtde 1.6.5's control interface reconnects on its own and then keeps re-uploading its script in a loop
+        # (and can crash the process); end it now. A fresh one is made by resume().
+        if self._c is not None:
+            try:
+                self._c.disconnect()
+            except RuntimeError as exc:
+                log.warning("disconnecting the control interface after the link loss: %s", exc)
+            self._c = None
+
+    def _backend_state(self) -> ArmState:
+        if self._r is None:
+            raise ConnectionLost(f"not connected to {self.host}; call connect() or resume()")
+        r = self._r
+        now = time.monotonic()
+        ts = float(r.getTimestamp())
+        if ts != self._last_ts:
+            self._last_ts = ts
+            self._last_change = now
+        q = np.array(r.getActualQ(), dtype=np.float64)
+        if q.shape != (6,):
+            raise ConnectionLost(f"receive interface returned joints of shape {q.shape}; stream not ready")
+        status = int(r.getRobotStatus())
+        return ArmState(
+            q=q,
+            qd=np.array(r.getActualQd(), dtype=np.float64),
+            base_from_tcp=pose_from_ur(r.getActualTCPPose()),
+            timestamp=ts,
+            robot_mode=int(r.getRobotMode()),
+            safety_mode=int(r.getSafetyMode()),
+            safety_status_bits=int(r.getSafetyStatusBits()),
+            runtime_state=int(r.getRuntimeState()),
+            program_running=bool(status & 2),
+            digital_out=int(r.getActualDigitalOutputBits()),
+            digital_in=int(r.getActualDigitalInputBits()),
+            received_at=self._last_change,
+        )
+
+    def _sent(self, ok: bool, what: str) -> None:
+        if not ok:
+            st = self._backend_state()
+            self._check_state(st, during=what, stop=True)
+            raise self._latch(DriverFault(f"controller refused {what} (control script not ready or not running)"))
+
+    def _backend_move_path(self, waypoints: FloatArray, speed: float, accel: float) -> None:
+        self._move_started, self._seen_running = time.monotonic(), False
+        if len(waypoints) == 1:
+            self._sent(self._c.moveJ(waypoints[0].tolist(), speed, accel, True), "moveJ")
+        else:
+            path = [list(map(float, w)) + [speed, accel, 0.0] for w in waypoints]
+            self._sent(self._c.moveJ(path, True), "moveJ path")
+
+    def _backend_move_linear(self, poses: FloatArray, speed: float, accel: float) -> None:
+        self._move_started, self._seen_running = time.monotonic(), False
+        tcp = np.linalg.inv(self.limits.flange_from_tcp)
+        _ = tcp
+        if len(poses) == 1:
+            self._sent(self._c.moveL(pose_to_ur(poses[0]).tolist(), speed, accel, True), "moveL")
+        else:
+            path = [pose_to_ur(p).tolist() + [speed, accel, 0.0] for p in poses]
+            self._sent(self._c.moveL(path, True), "moveL path")
+
+    def _backend_busy(self) -> bool:
+        running = int(self._c.getAsyncOperationProgress()) >= 0
+        if running:
+            self._seen_running = True
+            return True
+        return not self._seen_running and time.monotonic() - self._move_started < _BUSY_GRACE_S
+
+    def _backend_servo_begin(self) -> None:
+        self._sent(self._c.setWatchdog(1.0 / self.options.watchdog_s), "setWatchdog")
+        self._streaming = True
+
+    def _backend_servo(self, q: FloatArray, period_s: float) -> None:
+        self._c.servoJ(q.tolist(), 0.0, 0.0, period_s, self.servo_lookahead_s, self.servo_gain)
+
+    def _backend_servo_end(self) -> None:
+        if not self._streaming:
+            return
+        self._streaming = False
+        if self._fault is not None or self._c is None:
+            return
+        self._c.servoStop(self.options.stop_decel)
+        self._rearm_program()
+
+    def _rearm_program(self) -> None:
+        """Re-upload the control script (disarms the stream watchdog) and wait until it runs."""
+        self._c.reuploadScript()
+        deadline = time.monotonic() + self.options.connect_timeout_s
+        while not self._c.isProgramRunning():
+            if time.monotonic() > deadline:
+                raise self._latch(DriverFault("control script did not restart within the connect timeout"))
+            time.sleep(0.01)
+
+    def _backend_stop(self, decel: float) -> None:
+        if self._c is None or self._link_lost:
+            return
+        if self._streaming:
+            self._c.servoStop(decel)
+        self._c.stopJ(decel, False)
+
+    def _backend_set_output(self, index: int, level: bool, tool: bool) -> None:
+        ok = self._io.setToolDigitalOut(index, level) if tool else self._io.setStandardDigitalOut(index, level)
+        if not ok:
+            raise self._latch(DriverFault(f"setting digital output {index} failed"))
+        deadline = time.monotonic() + 1.0
+        bit = index + (16 if tool else 0)
+        while time.monotonic() < deadline:
+            if bool(int(self._r.getActualDigitalOutputBits()) >> bit & 1) == level:
+                return
+            time.sleep(0.004)
+        raise self._latch(DriverFault(f"digital output {bit} did not change to {level} within 1 s"))
+
+    def _backend_reset_faults(self) -> None:
+        if self._c is None:
+            raise ConnectionLost("not connected")
+        if not self._c.isProgramRunning():
+            self._rearm_program()

@@ -1,0 +1,208 @@
+"""Safety limits checked on every target before anything is sent to an arm.
+
+`SafetyLimits` holds joint position limits, joint speed and acceleration caps and a workspace box for the TCP in
+the robot base frame. Every check raises `SafetyViolation` (with the offending values in `detail`) and never
+sends or clips: a target outside the limits is refused as a whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from normpos_grasp.errors import SafetyViolation
+from normpos_grasp.kinematics.ur_params import dh_forward_kinematics, ur_params
+from normpos_grasp.typing import ArrayLike, FloatArray
+from normpos_grasp.validation import as_float_array, check_pose
+
+JOINT_TOL = 1e-9  # rad, numerical slack on joint limits
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    """Limits for one arm in one cell.
+
+    model: UR model name (its DH table gives the TCP for the workspace check).
+    q_lower, q_upper: (6,) joint limits, rad. max_joint_speed: (6,) rad/s. max_joint_accel: (6,) rad/s^2.
+    workspace_min, workspace_max: (3,) corners of the allowed TCP box in the base frame, m.
+    flange_from_tcp: (4, 4) tool transform used for the workspace check (identity: the flange).
+    max_tool_speed: m/s cap for Cartesian moves. max_tool_accel: m/s^2.
+    """
+
+    model: str
+    q_lower: FloatArray
+    q_upper: FloatArray
+    max_joint_speed: FloatArray
+    max_joint_accel: FloatArray
+    workspace_min: FloatArray
+    workspace_max: FloatArray
+    flange_from_tcp: FloatArray = field(default_factory=lambda: np.eye(4))
+    max_tool_speed: float = 1.0
+    max_tool_accel: float = 2.0
+
+    @classmethod
+    def for_model(
+        cls,
+        model: str,
+        workspace_min: ArrayLike | None = None,
+        workspace_max: ArrayLike | None = None,
+        speed_fraction: float = 1.0,
+        max_joint_accel: float = 4.0,
+        flange_from_tcp: ArrayLike | None = None,
+        max_tool_speed: float = 1.0,
+        max_tool_accel: float = 2.0,
+    ) -> SafetyLimits:
+        """Limits from the UR parameter table: joint limits, `speed_fraction` of the rated joint speeds, a
+        joint acceleration cap (rad/s^2), and a workspace box (default: a cube of twice the reach)."""
+        p = ur_params(model)
+        if not 0.0 < speed_fraction <= 1.0:
+            raise SafetyViolation(f"speed_fraction must be in (0, 1], got {speed_fraction}")
+        upper = np.array([min(v, 2 * np.pi) if np.isfinite(v) else 2 * np.pi for v in p.position_limit])
+        reach = p.reach_m + 0.3
+        wmin = as_float_array(workspace_min if workspace_min is not None else (-reach, -reach, -reach), "wmin", (3,))
+        wmax = as_float_array(workspace_max if workspace_max is not None else (reach, reach, reach), "wmax", (3,))
+        if np.any(wmin >= wmax):
+            raise SafetyViolation(f"workspace_min {wmin} must be below workspace_max {wmax} on every axis")
+        return cls(
+            model=p.name,
+            q_lower=-upper,
+            q_upper=upper,
+            max_joint_speed=np.array(p.velocity_limit) * speed_fraction,
+            max_joint_accel=np.full(6, float(max_joint_accel)),
+            workspace_min=wmin,
+            workspace_max=wmax,
+            flange_from_tcp=check_pose(
+                flange_from_tcp if flange_from_tcp is not None else np.eye(4), "flange_from_tcp"
+            ),
+            max_tool_speed=max_tool_speed,
+            max_tool_accel=max_tool_accel,
+        )
+
+    def with_workspace(self, workspace_min: ArrayLike, workspace_max: ArrayLike) -> SafetyLimits:
+        """A copy with another workspace box (base frame, m)."""
+        return SafetyLimits(
+            self.model,
+            self.q_lower,
+            self.q_upper,
+            self.max_joint_speed,
+            self.max_joint_accel,
+            as_float_array(workspace_min, "workspace_min", (3,)),
+            as_float_array(workspace_max, "workspace_max", (3,)),
+            self.flange_from_tcp,
+            self.max_tool_speed,
+            self.max_tool_accel,
+        )
+
+    # ------------------------------------------------------------------ checks
+    def base_from_tcp(self, q: ArrayLike) -> FloatArray:
+        """TCP pose(s) (..., 4, 4) in the base frame for joints (..., 6)."""
+        return dh_forward_kinematics(ur_params(self.model), q) @ self.flange_from_tcp
+
+    def check_joints(self, q: ArrayLike, what: str = "target") -> FloatArray:
+        """Check joint targets (6,) or (N, 6) against joint limits and the workspace box; returns them as float64."""
+        qs = np.asarray(q, dtype=np.float64)
+        if qs.ndim == 1:
+            qs = qs[None]
+        if qs.ndim != 2 or qs.shape[1] != 6:
+            raise SafetyViolation(f"{what}: expected joints of shape (6,) or (N, 6), got {np.shape(q)}")
+        if not np.all(np.isfinite(qs)):
+            raise SafetyViolation(f"{what}: joint values must be finite, got NaN/inf", detail={"q": qs})
+        low = qs < self.q_lower - JOINT_TOL
+        high = qs > self.q_upper + JOINT_TOL
+        if np.any(low | high):
+            i, j = np.argwhere(low | high)[0]
+            raise SafetyViolation(
+                f"{what} #{i}: joint {j} = {qs[i, j]:.4f} rad is outside [{self.q_lower[j]:.4f}, "
+                f"{self.q_upper[j]:.4f}]; nothing was sent",
+                detail={"index": int(i), "joint": int(j), "q": qs[i]},
+            )
+        self.check_tcp_positions(self.base_from_tcp(qs)[:, :3, 3], what)
+        return qs if np.ndim(q) == 2 else qs[0]
+
+    def check_tcp_positions(self, points: ArrayLike, what: str = "target") -> None:
+        """Check TCP positions (N, 3) (base frame, m) against the workspace box."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        outside = np.any((pts < self.workspace_min) | (pts > self.workspace_max), axis=1)
+        if np.any(outside):
+            i = int(np.argmax(outside))
+            raise SafetyViolation(
+                f"{what} #{i}: TCP at {np.round(pts[i], 4).tolist()} m is outside the workspace box "
+                f"{self.workspace_min.tolist()} .. {self.workspace_max.tolist()} (base frame); nothing was sent",
+                detail={"index": i, "tcp": pts[i]},
+            )
+
+    def check_tcp_pose(self, base_from_tcp: ArrayLike, what: str = "target") -> FloatArray:
+        pose = check_pose(base_from_tcp, what)
+        self.check_tcp_positions(pose[:3, 3][None], what)
+        return pose
+
+    def check_joint_speed(self, speed: float, accel: float) -> None:
+        """A movej speed (rad/s) and acceleration (rad/s^2) for the leading joint: within the smallest caps."""
+        vmax, amax = float(np.min(self.max_joint_speed)), float(np.min(self.max_joint_accel))
+        if not (0.0 < speed <= vmax + 1e-12) or not (0.0 < accel <= amax + 1e-12):
+            raise SafetyViolation(
+                f"joint move speed {speed} rad/s / acceleration {accel} rad/s^2 must be in (0, {vmax:.3f}] / "
+                f"(0, {amax:.3f}]; nothing was sent",
+                detail={"speed": speed, "accel": accel},
+            )
+
+    def check_tool_speed(self, speed: float, accel: float) -> None:
+        if not (0.0 < speed <= self.max_tool_speed) or not (0.0 < accel <= self.max_tool_accel):
+            raise SafetyViolation(
+                f"linear move speed {speed} m/s / acceleration {accel} m/s^2 must be in (0, {self.max_tool_speed}] "
+                f"/ (0, {self.max_tool_accel}]; nothing was sent",
+                detail={"speed": speed, "accel": accel},
+            )
+
+    def check_segment(self, q_from: ArrayLike, q_to: ArrayLike, what: str = "segment", samples: int = 16) -> None:
+        """Check the straight joint-space segment between two configurations (TCP box at `samples` points)."""
+        a = np.asarray(q_from, dtype=np.float64)
+        b = np.asarray(q_to, dtype=np.float64)
+        s = np.linspace(0.0, 1.0, samples)[:, None]
+        self.check_joints(a + (b - a) * s, what)
+
+    def check_trajectory(self, times: ArrayLike, q: ArrayLike, what: str = "trajectory") -> None:
+        """Check time-stamped joint samples: limits, workspace, and finite-difference speed/acceleration caps."""
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        qs = self.check_joints(np.asarray(q, dtype=np.float64).reshape(-1, 6), what)
+        if t.shape[0] != qs.shape[0]:
+            raise SafetyViolation(f"{what}: {t.shape[0]} time stamps for {qs.shape[0]} joint samples")
+        if t.shape[0] < 2:
+            return
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            i = int(np.argmax(dt <= 0))
+            raise SafetyViolation(f"{what}: time stamps must increase; sample {i + 1} at {t[i + 1]} s after {t[i]} s")
+        qd = np.diff(qs, axis=0) / dt[:, None]
+        over = np.abs(qd) > self.max_joint_speed * (1 + 1e-6) + 1e-9
+        if np.any(over):
+            i, j = np.argwhere(over)[0]
+            raise SafetyViolation(
+                f"{what}: joint {j} speed {abs(qd[i, j]):.3f} rad/s between samples {i} and {i + 1} exceeds the cap "
+                f"{self.max_joint_speed[j]:.3f} rad/s; nothing was sent",
+                detail={"index": int(i), "joint": int(j), "speed": float(qd[i, j])},
+            )
+        if qd.shape[0] >= 2:
+            dtm = 0.5 * (dt[1:] + dt[:-1])
+            qdd = np.diff(qd, axis=0) / dtm[:, None]
+            over = np.abs(qdd) > self.max_joint_accel * (1 + 1e-6) + 1e-9
+            if np.any(over):
+                i, j = np.argwhere(over)[0]
+                raise SafetyViolation(
+                    f"{what}: joint {j} acceleration {abs(qdd[i, j]):.3f} rad/s^2 at sample {i + 1} exceeds the cap "
+                    f"{self.max_joint_accel[j]:.3f} rad/s^2; nothing was sent",
+                    detail={"index": int(i + 1), "joint": int(j), "accel": float(qdd[i, j])},
+                )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "model": self.model,
+            "q_lower": self.q_lower.tolist(),
+            "q_upper": self.q_upper.tolist(),
+            "max_joint_speed": self.max_joint_speed.tolist(),
+            "max_joint_accel": self.max_joint_accel.tolist(),
+            "workspace_min": self.workspace_min.tolist(),
+            "workspace_max": self.workspace_max.tolist(),
+        }
