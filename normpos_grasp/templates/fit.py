@@ -53,10 +53,14 @@ class FitOptions:
         use_pca / use_control_points: hypothesis sources.
         fit_scale: fit a size factor; scale_tolerance: its bound (0.05 = parts up to 5 % off CAD size).
         min_points: fewer measured points -> rejected ("too few points").
+        min_consistency: share of points whose locally averaged residual lies within noise (a wrong
+            template leaves coherent residuals).
         min_inlier_ratio, max_rmse_m (added to the median inlier distance), min_coverage (with depth image),
         min_coverage_no_depth (without), max_free_space_violation: acceptance thresholds.
         ambiguity_ratio: a distinct pose (ADD-S > ambiguity_add_s * diameter) scoring at least this share of
             the best makes the fit ambiguous (rejected).
+        depth_bias_m: a calibrated systematic depth offset of the sensor, metres (positive: the sensor reads
+            too far); measured points are moved towards the camera by it along their rays. 0 by default.
         seed: RNG seed for subsampling and RANSAC (results are deterministic).
     """
 
@@ -77,12 +81,14 @@ class FitOptions:
     scale_tolerance: float = 0.05
     min_points: int = 30
     min_inlier_ratio: float = 0.75
+    min_consistency: float = 0.8
     max_rmse_m: float = 0.002
     min_coverage: float = 0.5
     min_coverage_no_depth: float = 0.3
     max_free_space_violation: float = 0.08
     ambiguity_ratio: float = 0.9
     ambiguity_add_s: float = 0.1
+    depth_bias_m: float = 0.0
     seed: int = 0
 
 
@@ -147,6 +153,9 @@ def fit_template(
     except _TooFew as exc:
         return _rejected(template, normpos, str(exc), t0)
     prep = prepare(template)
+    if camera is not None and opts.depth_bias_m:
+        d = np.asarray(camera.depth_m, dtype=np.float64)
+        camera = FitContext(camera.camera, np.where(d > 0, d - opts.depth_bias_m, 0.0))
     cands = _fit_candidates(prep, template, normpos, meas, opts, camera)
     if not cands:
         return _rejected(template, normpos, "no pose hypothesis explained the measured points", t0)
@@ -235,6 +244,11 @@ def _prepare_measurement(normpos: NormPosition, opts: FitOptions) -> _Measured:
     if len(pts) < opts.min_points:
         raise _TooFew(f"too few points: {len(pts)} valid measured points, need at least {opts.min_points}")
     vp = np.asarray(normpos.viewpoint, dtype=np.float64).reshape(3)
+    if opts.depth_bias_m:
+        ray = pts - vp
+        rl = np.linalg.norm(ray, axis=1, keepdims=True)
+        z_along = _view_axis_cos(ray, rl)
+        pts = pts - ray / np.maximum(rl, 1e-9) * (opts.depth_bias_m / z_along)[:, None]
     if nrm.shape[0] == good.shape[0]:
         nrm = nrm[good]
     nlen = np.linalg.norm(nrm, axis=1) if nrm.shape == pts.shape else np.zeros(len(pts))
@@ -274,6 +288,13 @@ def estimate_normals(points: FloatArray, viewpoint: FloatArray, k: int = 12) -> 
     flip = np.einsum("ij,ij->i", nrm, viewpoint - points) < 0
     nrm[flip] *= -1
     return nrm
+
+
+def _view_axis_cos(ray: FloatArray, length: FloatArray) -> FloatArray:
+    """cos of the angle between each ray and the mean viewing direction (z-depth -> range along the ray)."""
+    axis = ray.mean(axis=0)
+    axis = axis / max(float(np.linalg.norm(axis)), 1e-12)
+    return np.clip((ray @ axis) / np.maximum(length[:, 0], 1e-9), 0.2, 1.0)
 
 
 def _subsample(n: int, k: int, rng: np.random.Generator) -> np.ndarray:
@@ -487,6 +508,11 @@ def _decide(
     reasons = []
     if s.inlier_ratio < opts.min_inlier_ratio:
         reasons.append(f"inlier ratio {s.inlier_ratio:.2f} < {opts.min_inlier_ratio}")
+    if s.consistency < opts.min_consistency:
+        reasons.append(
+            f"systematic residuals: only {s.consistency:.2f} of the points match the template within noise "
+            f"after local averaging (< {opts.min_consistency})"
+        )
     if s.rmse_m > tol + opts.max_rmse_m:
         reasons.append(f"rmse {s.rmse_m * 1000:.2f} mm > {(tol + opts.max_rmse_m) * 1000:.2f} mm")
     min_cov = opts.min_coverage if ctx is not None else opts.min_coverage_no_depth
@@ -529,6 +555,7 @@ def _decide(
             "n_candidates": len(cands),
             "candidate_scores": [round(c.score.score, 4) for c in cands],
             "occluded_share": s.occluded_share,
+            "consistency": s.consistency,
             "scale_note": "" if abs(best.scale - 1.0) < 0.005 else f"part is {100 * (best.scale - 1):+.1f} % vs CAD",
         },
     )

@@ -12,6 +12,7 @@ template.yaml (lengths in the declared `units`, mm or m; angles in degrees):
     symmetry:
       continuous: [{axis: [0, 0, 1], point: [0, 0, 0]}]
       discrete: [{axis: [1, 0, 0], angle_deg: 180, point: [0, 0, 0]}]   # or {matrix: 4x4 rows}
+      generators: [{axis: [0, 0, 1], angle_deg: 90}, {axis: [1, 0, 0], angle_deg: 90}]  # whole group
     control_points: {corner_a: [0, 0, 0], hole_1: [20, 10, 5]}
     grasps:
       - {id: top, scheme: parallel, position: [0, 0, 30], rotvec_deg: [180, 0, 0], opening: 40, priority: 1}
@@ -294,24 +295,66 @@ def _parse_symmetry(spec: dict[str, Any], scale: float, where: str) -> Symmetry:
         point = _vec(c.get("point", [0, 0, 0]), f"{where}: symmetry.continuous[{i}].point") * scale
         cont.append((axis / np.linalg.norm(axis), point))
     disc = []
+    gens = [
+        _parse_rotation(d, scale, f"{where}: symmetry.generators[{i}]")
+        for i, d in enumerate(spec.get("generators") or [])
+    ]
+    if gens:
+        disc.extend(_group_closure(gens, where))
     for i, d in enumerate(spec.get("discrete") or []):
-        if "matrix" in d:
-            t = np.asarray(d["matrix"], dtype=np.float64)
-            if t.shape != (4, 4):
-                raise TemplateError(f"{where}: symmetry.discrete[{i}].matrix must be 4x4")
-            t = t.copy()
-            t[:3, 3] *= scale
-        else:
-            axis = _vec(d.get("axis"), f"{where}: symmetry.discrete[{i}].axis")
-            angle = np.deg2rad(float(d.get("angle_deg", 180.0)))
-            point = _vec(d.get("point", [0, 0, 0]), f"{where}: symmetry.discrete[{i}].point") * scale
-            rot = rotation_from_rotvec(axis / np.linalg.norm(axis) * angle)
-            t = make_pose(rot, point - rot @ point)
-        rot = t[:3, :3]
-        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
-            raise TemplateError(f"{where}: symmetry.discrete[{i}] is not a proper rotation")
-        disc.append(t)
-    return Symmetry(continuous=tuple(cont), discrete=tuple(disc))
+        disc.append(_parse_rotation(d, scale, f"{where}: symmetry.discrete[{i}]"))
+    return Symmetry(continuous=tuple(cont), discrete=tuple(_unique_transforms(disc)))
+
+
+def _parse_rotation(d: dict[str, Any], scale: float, where: str) -> FloatArray:
+    """A symmetry transform from {matrix: 4x4} or {axis, angle_deg, point} (lengths in file units)."""
+    if not isinstance(d, dict):
+        raise TemplateError(f"{where}: expected a mapping with 'matrix' or 'axis'/'angle_deg'")
+    if "matrix" in d:
+        t = np.asarray(d["matrix"], dtype=np.float64)
+        if t.shape != (4, 4):
+            raise TemplateError(f"{where}: matrix must be 4x4")
+        t = t.copy()
+        t[:3, 3] *= scale
+    else:
+        axis = _vec(d.get("axis"), f"{where}.axis")
+        if np.linalg.norm(axis) < 1e-9:
+            raise TemplateError(f"{where}.axis must be non-zero")
+        angle = np.deg2rad(float(d.get("angle_deg", 180.0)))
+        point = _vec(d.get("point", [0, 0, 0]), f"{where}.point") * scale
+        rot = rotation_from_rotvec(axis / np.linalg.norm(axis) * angle)
+        t = make_pose(rot, point - rot @ point)
+    rot = t[:3, :3]
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5) or np.linalg.det(rot) < 0:
+        raise TemplateError(f"{where}: not a proper rotation")
+    return t
+
+
+def _unique_transforms(ts: list[FloatArray]) -> list[FloatArray]:
+    out: list[FloatArray] = []
+    for t in ts:
+        if np.allclose(t, np.eye(4), atol=1e-6) or any(np.allclose(t, u, atol=1e-6) for u in out):
+            continue
+        out.append(t)
+    return out
+
+
+def _group_closure(gens: list[FloatArray], where: str, limit: int = 120) -> list[FloatArray]:
+    """All products of the generators (a finite symmetry group), identity excluded."""
+    group = [np.eye(4)]
+    frontier = [np.eye(4)]
+    while frontier:
+        nxt = []
+        for a in frontier:
+            for g in gens:
+                p = g @ a
+                if not any(np.allclose(p, q, atol=1e-6) for q in group):
+                    group.append(p)
+                    nxt.append(p)
+                    if len(group) > limit:
+                        raise TemplateError(f"{where}: symmetry generators do not form a finite group of <= {limit}")
+        frontier = nxt
+    return group[1:]
 
 
 def _parse_grasp(g: dict[str, Any], scale: float, where: str) -> GraspAnnotation:

@@ -18,6 +18,8 @@ logger = logging.getLogger(__name__)
 #: Plausible object sizes (largest extent, metres) for a pick-and-place cell.
 MIN_SIZE_M = 0.002
 MAX_SIZE_M = 2.0
+#: above this many faces the (pure Python) winding repair is skipped and only reported
+MAX_FACES_WINDING_FIX = 20000
 
 
 @dataclass(frozen=True)
@@ -99,8 +101,17 @@ def check_mesh(
         if len(m.vertices) != n_v:
             repairs.append(f"removed {n_v - len(m.vertices)} unreferenced vertices")
         if not m.is_winding_consistent:
-            trimesh.repair.fix_winding(m)
-            repairs.append("made face winding consistent")
+            if len(m.faces) <= MAX_FACES_WINDING_FIX:
+                trimesh.repair.fix_winding(m)
+                repairs.append("made face winding consistent")
+            else:
+                logger.warning(
+                    "mesh '%s': %d faces with inconsistent winding left as is (the fix is slow above %d faces); "
+                    "the fitter orients its normals by ray casting",
+                    name,
+                    len(m.faces),
+                    MAX_FACES_WINDING_FIX,
+                )
         if not m.is_watertight:
             trimesh.repair.fill_holes(m)
             if m.is_watertight:

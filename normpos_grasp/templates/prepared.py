@@ -8,12 +8,16 @@ from __future__ import annotations
 import threading
 import weakref
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from normpos_grasp.templates.model import Template
+
+if TYPE_CHECKING:
+    import trimesh
 from normpos_grasp.typing import FloatArray, IntArray
 
 _CACHE: weakref.WeakKeyDictionary[Template, PreparedTemplate] = weakref.WeakKeyDictionary()
@@ -86,6 +90,8 @@ def _build(template: Template) -> PreparedTemplate:
     r2 = rng.random(N_SAMPLES)[:, None]
     samples = (1 - r1) * tri[:, 0] + r1 * (1 - r2) * tri[:, 1] + r1 * r2 * tri[:, 2]
     normals = np.asarray(mesh.face_normals, dtype=np.float64)[face]
+    if not mesh.is_winding_consistent:
+        normals = _orient_outward(mesh, samples, normals)
     # replace random sampling by a well-spread subset (farthest-point-like via voxel thinning)
     centroid = (area[:, None] * np.asarray(mesh.triangles_center)).sum(0) / area.sum()
     cov = np.cov((samples - centroid).T)
@@ -130,3 +136,15 @@ def _build(template: Template) -> PreparedTemplate:
         desc_tree=cKDTree(desc),
         voxel=voxel,
     )
+
+
+def _orient_outward(mesh: trimesh.Trimesh, points: FloatArray, normals: FloatArray) -> FloatArray:
+    """Flip normals that point into the solid: a ray along an outward normal leaves a closed mesh after an
+    even number of crossings (used when the face winding is inconsistent)."""
+    eps = 1e-6 * max(float(mesh.scale), 1e-9)
+    origins = points + normals * eps
+    _, ray_idx, _ = mesh.ray.intersects_location(origins, normals, multiple_hits=True)
+    hits = np.bincount(np.asarray(ray_idx, dtype=np.int64), minlength=len(points))
+    out = normals.copy()
+    out[hits % 2 == 1] *= -1.0
+    return out

@@ -18,6 +18,8 @@ from normpos_grasp.templates.icp import correspond
 from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import BoolArray, FloatArray
 
+FREE_SPACE_WINDOW_PX = 2
+
 
 @dataclass(frozen=True)
 class PoseScore:
@@ -30,6 +32,7 @@ class PoseScore:
     free_space_violation: float
     n_visible: int
     occluded_share: float
+    consistency: float = 1.0
 
 
 def visible_samples(
@@ -87,34 +90,37 @@ def evaluate(
     near = d < np.maximum(3.0 * thr / scale, 2.0 * prep.spacing)
     inl = near & (np.abs(r) * scale < thr)
     inlier_ratio = float(inl.mean()) if len(inl) else 0.0
+    consistency = _consistency(pts, r * scale, near, thr)
     rmse = float(np.sqrt(np.mean((r[inl] * scale) ** 2))) if np.any(inl) else float("inf")
     tol = float(np.median(thr))
     frame_from_object = invert_pose(object_from_frame)
-    use_depth = camera is not None and depth_m is not None and camera_from_frame is not None
-    if use_depth:
-        assert camera_from_frame is not None  # for type checkers; guarded by use_depth
+    if camera is not None and depth_m is not None and camera_from_frame is not None:
         cff = camera_from_frame
     else:
+        camera = depth_m = None
         centre = meas_tree.data.mean(axis=0)
         cff = invert_pose(look_at(viewpoint, centre, up=_any_up(centre - viewpoint)))
     visible, pc = visible_samples(prep, frame_from_object, scale, cff)
     n_vis = int(visible.sum())
     if n_vis == 0:
-        return PoseScore(0.0, inlier_ratio, rmse, 0.0, 1.0, 0, 0.0)
+        return PoseScore(0.0, inlier_ratio, rmse, 0.0, 1.0, 0, 0.0, consistency)
     pv = pc[visible]
     nv = (prep.normals[visible]) @ (cff @ frame_from_object)[:3, :3].T
     grazing = np.abs(np.einsum("ij,ij->i", nv, pv)) < 0.3 * np.linalg.norm(pv, axis=1)
-    if use_depth:
-        assert camera is not None and depth_m is not None
+    if camera is not None and depth_m is not None:
         uv = np.rint(camera.project(pv)).astype(np.int64)
         inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
         meas = np.zeros(len(pv))
         meas[inside] = depth_m[uv[inside, 1], uv[inside, 0]]
         known = inside & (meas > 0) & np.isfinite(meas)
         diff = np.where(known, meas - pv[:, 2], 0.0)
-        tol_z = np.maximum(tol, 3.0 * _noise(pv[:, 2], thr, tol))
+        tol_z = np.full(len(pv), tol)
         occluded = known & (diff < -tol_z)
-        violating = known & (diff > np.maximum(3.0 * tol_z, 0.01)) & ~grazing
+        # see-through test on the nearest valid depth in a small window: robust to depth edges that are
+        # misaligned by a pixel or two (stereo and Kinect depth both shift silhouettes)
+        nearest = _window_min(depth_m, uv, inside, FREE_SPACE_WINDOW_PX)
+        see_through = nearest - pv[:, 2] > np.maximum(3.0 * tol_z, 0.01)
+        violating = inside & np.isfinite(nearest) & see_through & ~grazing
         supported = known & (np.abs(diff) <= tol_z)
         denom = max(int((known & ~occluded).sum()), 1)
         coverage = float(supported.sum()) / denom
@@ -137,8 +143,8 @@ def evaluate(
         violating = has & ~grazing & (np.nan_to_num(zm, nan=0.0) - pv[:, 2] > np.maximum(3.0 * tol, 0.01))
         fsv = float(violating.sum()) / max(int((~grazing).sum()), 1)
         occ_share = 0.0
-    score = _combine(inlier_ratio, rmse, coverage, fsv, tol)
-    return PoseScore(score, inlier_ratio, rmse, coverage, fsv, n_vis, occ_share)
+    score = _combine(inlier_ratio, rmse, coverage, fsv, tol) * consistency
+    return PoseScore(score, inlier_ratio, rmse, coverage, fsv, n_vis, occ_share, consistency)
 
 
 def _combine(inlier_ratio: float, rmse: float, coverage: float, fsv: float, tol: float) -> float:
@@ -148,8 +154,44 @@ def _combine(inlier_ratio: float, rmse: float, coverage: float, fsv: float, tol:
     return float(np.clip(inlier_ratio * (0.5 + 0.5 * fit) * np.sqrt(min(1.0, coverage / 0.8)) * (1.0 - fsv) ** 2, 0, 1))
 
 
-def _noise(z: FloatArray, thr: FloatArray, tol: float) -> FloatArray:
-    return np.full(len(z), tol / 3.0)
+SMOOTH_K = 16
+#: residual floor for the consistency test (CAD vs part deviations, sampling), metres
+SYSTEMATIC_FLOOR_M = 0.0012
+
+
+def _consistency(pts: FloatArray, r: FloatArray, near: BoolArray, thr: FloatArray) -> float:
+    """Share of points whose neighbourhood-mean residual is within noise: a wrong template leaves
+    spatially coherent residuals that averaging does not remove, while sensor noise averages out.
+    thr is 2.5 sigma per point; points without a correspondence count as inconsistent."""
+    n = len(pts)
+    if n < 4:
+        return 0.0
+    k = min(SMOOTH_K, n)
+    _, idx = cKDTree(pts).query(pts, k=k)
+    rr = np.where(near, r, np.nan)[idx]
+    cnt = np.sum(np.isfinite(rr), axis=1)
+    mean = np.nansum(rr, axis=1) / np.maximum(cnt, 1)
+    sigma = thr / 2.5
+    lim = np.maximum(SYSTEMATIC_FLOOR_M, 3.0 * sigma / np.sqrt(np.maximum(cnt, 1)))
+    ok = near & (cnt >= k // 2) & (np.abs(mean) <= lim)
+    return float(ok.mean())
+
+
+def _window_min(depth: FloatArray, uv: np.ndarray, inside: BoolArray, r: int) -> FloatArray:
+    """Nearest valid depth within +-r pixels of each (u, v) (inf where none or outside)."""
+    out = np.full(len(uv), np.inf)
+    idx = np.flatnonzero(inside)
+    if len(idx) == 0:
+        return out
+    h, w = depth.shape
+    offs = np.arange(-r, r + 1)
+    du, dv = np.meshgrid(offs, offs)
+    uu = np.clip(uv[idx, 0][:, None] + du.ravel()[None], 0, w - 1)
+    vv = np.clip(uv[idx, 1][:, None] + dv.ravel()[None], 0, h - 1)
+    vals = depth[vv, uu]
+    vals = np.where((vals > 0) & np.isfinite(vals), vals, np.inf)
+    out[idx] = vals.min(axis=1)
+    return out
 
 
 def _cell_keys(pc: FloatArray, cell: float) -> FloatArray:

@@ -1,0 +1,127 @@
+"""Template library: YAML folders, BOP models, save/load round trip, mesh checks and unit mix-ups."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+trimesh = pytest.importorskip("trimesh")
+
+from normpos_grasp.errors import MeshError, TemplateError  # noqa: E402
+from normpos_grasp.templates.library import (  # noqa: E402
+    TemplateLibrary,
+    load_library,
+    load_template,
+    save_template,
+)
+from normpos_grasp.templates.mesh_check import check_mesh  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
+
+
+def _write(folder: Path, text: str, mesh: trimesh.Trimesh, name: str = "mesh.stl") -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh.export(str(folder / name))
+    (folder / "template.yaml").write_text(text)
+    return folder
+
+
+def test_example_library_loads_with_units_symmetry_and_grasps() -> None:
+    lib = load_library(REPO / "examples" / "templates")
+    cube = lib.get("cube_40mm")
+    assert cube.label == "cube"
+    assert np.allclose(cube.extents_m, 0.04)
+    assert len(cube.symmetry.discrete) == 23  # the full proper rotation group of a cube, from 2 generators
+    assert np.allclose(cube.control_points["corner_ppp"], [0.02, 0.02, 0.02])
+    assert cube.grasps[0].opening_m == pytest.approx(0.05)
+    assert lib.by_label("bracket")[0].name == "l_bracket"
+    v = np.asarray(cube.mesh.vertices)
+    for s in cube.symmetry.discrete:  # every declared symmetry maps the mesh onto itself
+        moved = v @ s[:3, :3].T + s[:3, 3]
+        assert np.min(np.linalg.norm(moved[:, None] - v[None], axis=-1), axis=1).max() < 1e-9
+
+
+def test_save_and_load_round_trip(tmp_path: Path) -> None:
+    lib = load_library(REPO / "examples" / "templates")
+    for t in lib:
+        save_template(t, tmp_path / t.name, units="mm")
+    back = load_library(tmp_path)
+    assert back.names == lib.names
+    for a in lib:
+        b = back.get(a.name)
+        assert np.allclose(a.extents_m, b.extents_m)
+        assert a.symmetry.discrete and len(a.symmetry.discrete) == len(b.symmetry.discrete)
+        for name, p in a.control_points.items():
+            assert np.allclose(p, b.control_points[name])
+        for ga, gb in zip(a.grasps, b.grasps, strict=True):
+            assert np.allclose(ga.object_from_tcp, gb.object_from_tcp, atol=1e-9)
+            assert ga.opening_m == pytest.approx(gb.opening_m)
+
+
+def test_units_in_metres_and_mismatch_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    box_m = trimesh.creation.box(extents=(0.05, 0.03, 0.02))
+    t = load_template(_write(tmp_path / "m", "name: b\nunits: m\n", box_m))
+    assert np.allclose(sorted(t.extents_m), [0.02, 0.03, 0.05])
+    # a mesh in metres declared as mm: 50 um across -> warned, then refused as implausibly small
+    with caplog.at_level(logging.WARNING), pytest.raises(MeshError, match="units"):
+        load_template(_write(tmp_path / "mm", "name: b\nunits: mm\n", box_m))
+    assert any("metres" in r.message for r in caplog.records)
+    # a mesh in mm declared as m: 50 m across
+    with pytest.raises(MeshError, match="units"):
+        load_template(_write(tmp_path / "big", "name: b\nunits: m\n", trimesh.creation.box(extents=(50, 30, 20))))
+
+
+def test_bad_inputs_raise_typed_errors(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(TemplateError, match="no templates"):
+        load_library(tmp_path / "empty")
+    with pytest.raises(TemplateError, match="does not exist"):
+        load_library(tmp_path / "nope")
+    box = trimesh.creation.box(extents=(0.05, 0.03, 0.02))
+    with pytest.raises(TemplateError, match="units"):
+        load_template(_write(tmp_path / "u", "name: b\nunits: inch\n", box))
+    with pytest.raises(TemplateError, match="not found"):
+        load_template(_write(tmp_path / "nomesh", "name: b\nmesh: missing.stl\n", box))
+    with pytest.raises(TemplateError, match="YAML|mapping"):
+        load_template(_write(tmp_path / "bad", "- just\n- a list\n", box))
+    # yaml.safe_load only: a python object tag is refused
+    with pytest.raises(TemplateError):
+        load_template(_write(tmp_path / "evil", "!!python/object/apply:os.system ['true']\n", box))
+    with pytest.raises(TemplateError, match="unique"):
+        t = load_template(_write(tmp_path / "ok", "name: b\nunits: m\n", box))
+        TemplateLibrary((t, t))
+
+
+def test_mesh_repair_reports_and_fixes(caplog: pytest.LogCaptureFixture) -> None:
+    box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
+    inverted = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
+    faces = np.vstack([inverted.faces, inverted.faces[:2], [[0, 0, 1]]])  # duplicates + a degenerate face
+    broken = trimesh.Trimesh(inverted.vertices, faces, process=False)
+    with caplog.at_level(logging.WARNING):
+        fixed, report = check_mesh(broken, "broken")
+    assert report.ok and report.watertight and report.flipped
+    assert report.duplicate_faces >= 2 and report.degenerate_faces >= 1
+    assert fixed.volume > 0 and len(fixed.faces) == 12
+    assert len(broken.faces) == 15  # input untouched
+    assert "repaired" in caplog.text
+    # an open surface is reported (and refused when a watertight mesh is required)
+    open_mesh = trimesh.Trimesh(box.vertices, box.faces[:-2], process=False)
+    _, rep = check_mesh(open_mesh, "open", repair=False)
+    assert not rep.watertight and rep.problems
+    with pytest.raises(MeshError, match="watertight"):
+        check_mesh(open_mesh, "open", repair=False, require_watertight=True)
+    with pytest.raises(MeshError):
+        check_mesh(trimesh.Trimesh(np.zeros((3, 3)), [[0, 1, 2]], process=False), "flat")
+
+
+@pytest.mark.skipif(not LMO.exists(), reason="shared LM-O sample not found next to the repository")
+def test_bop_models_folder_loads_as_library() -> None:
+    lib = load_library(LMO / "models")
+    t = lib.by_obj_id(5)
+    assert t.name == "obj_000005" and t.units == "mm"
+    assert t.diameter_m == pytest.approx(0.20140, abs=2e-4)  # models_info.json: 201.40 mm
+    assert np.allclose(t.extents_m, [0.10079, 0.18180, 0.19373], atol=2e-4)
