@@ -203,8 +203,11 @@ class PhysicsOptions:
     vacuum builds) before lifting. lift_m / lift_s: vertical lift (world +z). move_m / move_s: sideways move
     (world +x, minimum-jerk: peak acceleration 5.8 * move_m / move_s^2). hold_s: hold at the end.
     slip_tolerance_m / slip_tolerance_rad: allowed motion of the object relative to the TCP from grip to end.
-    collision_force_n / collision_penetration_m: a hand contact with the cell or a neighbour (or with the target
-    before closing) above either is a collision. neighbour_radius_m: neighbours whose bounding sphere comes
+    collision_force_n / collision_penetration_m: a hand contact with the cell or a neighbour above either is a
+    collision; target_collision_force_n: the same for the hand pressing on the target before closing (a protective
+    stop of the arm; lighter pushes just move the part). release_s: after a failed pick the jaws open (the vacuum
+    stops) and the hand rises 5 cm for this long, so the final poses show where the parts came to rest.
+    neighbour_radius_m: neighbours whose bounding sphere comes
     closer than this to the target's centre are simulated; the rest are left out.
     object_friction / static_friction: Coulomb friction of parts and cell geometry.
     check_every: contact checks every this many steps. seal: suction seal criteria.
@@ -225,6 +228,8 @@ class PhysicsOptions:
     slip_tolerance_m: float = 0.01
     slip_tolerance_rad: float = 0.2
     collision_force_n: float = 40.0
+    target_collision_force_n: float = 150.0
+    release_s: float = 0.5
     collision_penetration_m: float = 0.004
     neighbour_radius_m: float = 0.25
     object_friction: float = 0.5
@@ -246,6 +251,8 @@ class PhysicsResult:
     max_penetration_m: deepest contact during the run. grip_force_n: normal force between hand and target after
     closing. collision_with: names of what the hand hit ('' if nothing). seal: the suction seal check (None for
     parallel jaws). sim_time_s: simulated time; wall_time_s: compute time. n_pieces: convex pieces of the target.
+    world_from_object_final (4, 4) / world_from_neighbours_final (K, 4, 4): poses at the end of the run (the
+    target where it ended, in the hand or not; neighbours left out of the simulation keep their poses).
     """
 
     outcome: str
@@ -262,6 +269,8 @@ class PhysicsResult:
     sim_time_s: float
     wall_time_s: float
     n_pieces: int
+    world_from_object_final: FloatArray = field(default_factory=lambda: np.eye(4))
+    world_from_neighbours_final: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
 
     @property
     def success(self) -> bool:
@@ -472,8 +481,10 @@ class _Monitor:
         other = np.where(g[:, 0] == 3, g[:, 1], g[:, 0])
         touching = hand & (other == 1) & (dist < 0.0005)
         grip = float(force[touching].sum())
-        bad = hand & ((other == 0) | (other == 2) | ((other == 1) & target_counts))
-        bad &= (force > opts.collision_force_n) | (-dist > opts.collision_penetration_m)
+        deep = -dist > opts.collision_penetration_m
+        bad = hand & ((other == 0) | (other == 2)) & ((force > opts.collision_force_n) | deep)
+        if target_counts:  # landing on the target before closing: only a hard hit stops the arm
+            bad |= hand & (other == 1) & ((force > opts.target_collision_force_n) | deep)
         if bad.any() and not self.collision:
             k = int(np.argmax(bad))
             a, b = geom[k]
@@ -520,14 +531,18 @@ def validate_grasp(
     bodies.append(_object_body_xml("target", target, w_obj, target_pieces, opts.object_friction, assets))
     centre = w_obj[:3, :3] @ np.asarray(target.mesh.bounding_sphere.primitive.center) + w_obj[:3, 3]
     kept = 0
+    neighbour_poses = []
+    simulated: list[int] = []
     lowest = float((np.asarray(target.mesh.vertices) @ w_obj[:3, :3].T + w_obj[:3, 3])[:, 2].min())
     for i, (tmpl, pose_in) in enumerate(neighbours):
         pose = check_pose(pose_in, f"neighbours[{i}] pose", tol=1e-5)
+        neighbour_poses.append(pose)
         sphere = tmpl.mesh.bounding_sphere.primitive
         c = pose[:3, :3] @ np.asarray(sphere.center) + pose[:3, 3]
         if np.linalg.norm(c - centre) - float(sphere.radius) > opts.neighbour_radius_m:
             continue
         kept += 1
+        simulated.append(i)
         lowest = min(lowest, float((np.asarray(tmpl.mesh.vertices) @ pose[:3, :3].T + pose[:3, 3])[:, 2].min()))
         pieces = collision_pieces(tmpl, opts.decomposition)
         bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets))
@@ -701,7 +716,15 @@ def validate_grasp(
         )
     else:
         outcome, reason = "held", ""
+    if outcome != "held" and opts.release_s > 0:
+        step += _release(model, data, spec, mocap, np.asarray(data.mocap_pos[mocap], dtype=np.float64), opts)
     sim_time = step * dt
+    final_neighbours = np.array(neighbour_poses, dtype=np.float64).reshape(-1, 4, 4)
+    for i in simulated:
+        bid = model.body(f"nb{i}").id
+        final_neighbours[i] = make_pose(np.asarray(data.xmat[bid]).reshape(3, 3), np.asarray(data.xpos[bid]))
+    tid = model.body("target").id
+    final_target = make_pose(np.asarray(data.xmat[tid]).reshape(3, 3), np.asarray(data.xpos[tid]))
     result = PhysicsResult(
         outcome=outcome,
         reason=reason,
@@ -717,9 +740,32 @@ def validate_grasp(
         sim_time_s=sim_time,
         wall_time_s=time.perf_counter() - t_wall,
         n_pieces=len(target_pieces),
+        world_from_object_final=final_target,
+        world_from_neighbours_final=final_neighbours,
     )
     logger.debug("grasp on %s: %s (%s), %d neighbours simulated", target.name, outcome, reason, kept)
     return result
+
+
+def _release(
+    model: mujoco.MjModel, data: mujoco.MjData, spec: GripperSpec, mocap: int, pos: FloatArray, opts: PhysicsOptions
+) -> int:
+    """Open the jaws (or stop the vacuum), raise the hand 5 cm and let the parts come to rest; returns steps."""
+    import mujoco
+
+    if spec.kind == "parallel":
+        for side in ("left", "right"):
+            data.ctrl[model.actuator(f"drive_{side}").id] = 0.0
+    else:
+        data.eq_active[model.equality("vacuum").id] = 0
+    n_steps = max(1, int(round(opts.release_s / opts.timestep_s)))
+    rise = np.array([0.0, 0.0, 0.05])
+    for k in range(n_steps):
+        data.mocap_pos[mocap] = pos + rise * _min_jerk(min(1.0, 2.0 * (k + 1) / n_steps))
+        mujoco.mj_step(model, data)
+    if not np.all(np.isfinite(data.qpos)):
+        raise SimulationError("the grasp simulation diverged while releasing; reduce timestep_s")
+    return n_steps
 
 
 class _Vacuum:
