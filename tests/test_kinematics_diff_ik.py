@@ -83,3 +83,12 @@ def test_limits_are_explicit_and_collision_pairs_build() -> None:
     goal[:3, 3] += (0.0, 0.0, 0.05)
     path = full.cartesian_path(Q0, goal, step_m=0.01)
     np.testing.assert_allclose(robot.fk(path[-1])[:3, 3], goal[:3, 3], atol=1e-4)
+
+
+def test_solve_without_configuration_limit_wraps_into_limits() -> None:
+    robot = Robot.load("ur5e")
+    start = np.array([6.0, -1.2, 1.4, -1.7, -1.5, 6.1])  # near the +2 pi limits
+    goal_q = start + np.array([0.5, 0.1, 0.0, 0.0, 0.1, 0.4])  # beyond them: reachable as goal_q - 2 pi
+    result = solve_pose(robot, start, robot.fk(goal_q), DiffIKOptions(use_configuration_limit=False))
+    assert robot.within_limits(result.q)
+    np.testing.assert_allclose(robot.fk(result.q)[:3, 3], robot.fk(goal_q)[:3, 3], atol=1e-4)

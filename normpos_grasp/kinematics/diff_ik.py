@@ -3,13 +3,17 @@
 Tasks: FrameTask on the `flange` site (targets given for the TCP are mapped through `flange_from_tcp`) and a
 light PostureTask towards the start configuration. Limits (each optional): ConfigurationLimit, VelocityLimit,
 CollisionAvoidanceLimit between named bodies. Pitfalls handled here: mink's `solve_ik(limits=None)` silently
-adds a ConfigurationLimit, so limits are always passed as an explicit list; UR joints span +-2 pi, where a
-ConfigurationLimit with gain 0.95 and full steps (dt = 1) slows convergence near a limit, so `dt` is a real
-time step and the iteration budget is counted per waypoint.
+adds a ConfigurationLimit, so limits are always passed as an explicit list. A ConfigurationLimit (gain 0.95)
+lets each step cover at most 95 % of the distance to a limit, so with UR's +-2 pi ranges a solve whose nearest
+solution lies across a limit stalls (benchmark: 45 % success from the home pose with it, far more without);
+`solve` without the limit wraps the result back into the limits by multiples of 2 pi, which is exact for a
+point target. `cartesian_path` keeps it on by default: a continuous path cannot be wrapped. `dt` only
+matters for VelocityLimit (|dq| <= v dt per iteration).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -165,6 +169,13 @@ class DiffIK:
         goal = check_pose(base_from_tcp_goal, "base_from_tcp_goal") @ self._tcp_from_flange
         self._set_posture(q0)
         result = self._iterate(q0, goal)
+        if result.converged:
+            lower, upper = self.robot.joint_limits
+            wrapped = _wrap_into(result.q, lower, upper)
+            if wrapped is None:
+                result = dataclasses.replace(result, converged=False)
+            else:
+                result = dataclasses.replace(result, q=wrapped)
         if not result.converged:
             raise DiffIKNotConverged(
                 f"{self.robot.name}: differential IK stopped {result.position_error_m * 1e3:.2f} mm / "
@@ -219,6 +230,19 @@ class DiffIK:
             q = result.q
             path.append(q)
         return np.array(path)
+
+
+def _wrap_into(q: FloatArray, lower: FloatArray, upper: FloatArray) -> FloatArray | None:
+    """q shifted by multiples of 2 pi per joint into [lower, upper], or None where no copy fits."""
+    out = q.copy()
+    outside = (q < lower) | (q > upper)
+    for j in np.flatnonzero(outside):
+        k = math.ceil((lower[j] - q[j]) / (2 * math.pi))
+        candidate = q[j] + 2 * math.pi * k
+        if candidate > upper[j]:
+            return None
+        out[j] = candidate
+    return out
 
 
 def _joint_names(model: mujoco.MjModel) -> list[str]:

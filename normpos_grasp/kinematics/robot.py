@@ -144,12 +144,19 @@ class Robot:
         self._lower, self._upper = -limits, limits
         self._lower.setflags(write=False)
         self._upper.setflags(write=False)
-        # Multiples of 2 pi that can bring some angle in (-pi, pi] inside each joint's limits.
+        # +-2 pi copies: with limits in (pi, 3 pi) each joint has at most one extra copy of a principal angle
+        # (v - 2 pi sign v), so the branches are the 2^m on/off patterns of those m joints; wider limits take the
+        # general path over every multiple of 2 pi.
+        finite = np.isfinite(limits)
+        self._branch_joints = np.flatnonzero(finite & (limits > math.pi))
+        self._binary = bool(np.all(limits[finite] < 3 * math.pi))
+        m = len(self._branch_joints)
+        self._branch_bits = np.array(list(itertools.product((False, True), repeat=m)), dtype=bool).reshape(-1, m)
         per_joint = []
         for lim in limits:
-            m = int(math.ceil(lim / _TWO_PI)) if math.isfinite(lim) else 0
-            per_joint.append([k * _TWO_PI for k in range(-m, m + 1) if abs(k) * _TWO_PI < lim + math.pi])
-        self._branch_offsets = np.array(list(itertools.product(*per_joint)))  # (C, 6)
+            k = int(math.ceil(lim / _TWO_PI)) if math.isfinite(lim) else 0
+            per_joint.append([i * _TWO_PI for i in range(-k, k + 1) if abs(i) * _TWO_PI < lim + math.pi])
+        self._branch_offsets = np.array(list(itertools.product(*per_joint)))  # (C, 6), general path
 
     @staticmethod
     def load(name: str, calibration: DHCalibration | str | Path | None = None) -> Robot:
@@ -289,10 +296,21 @@ class Robot:
         pose = np.asarray(base_from_flange, dtype=np.float64)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise InputError(f"base_from_flange: expected a finite (4, 4) pose, got shape {pose.shape}")
-        rot = pose[:3, :3]
-        err = float(np.abs(rot.T @ rot - np.eye(3)).max())
-        if err > 1e-6 or np.linalg.det(rot) < 0 or np.abs(pose[3] - (0, 0, 0, 1)).max() > 1e-9:
-            raise InputError(f"base_from_flange: rotation is not orthonormal (error {err:.2e}) or last row wrong")
+        (r00, r01, r02, _), (r10, r11, r12, _), (r20, r21, r22, _), last = pose.tolist()
+        # columns orthonormal and z = x cross y (a proper rotation), in scalar math (numpy calls cost ~us each)
+        err = max(
+            abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0),
+            abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
+            abs(r00 * r01 + r10 * r11 + r20 * r21),
+            abs(r10 * r21 - r20 * r11 - r02),
+            abs(r20 * r01 - r00 * r21 - r12),
+            abs(r00 * r11 - r10 * r01 - r22),
+        )
+        if err > 1e-6 or last != [0.0, 0.0, 0.0, 1.0]:
+            raise InputError(
+                f"base_from_flange: rotation block is not a proper rotation (error {err:.2e}) or the last row "
+                f"{last} is not [0, 0, 0, 1]"
+            )
         return pose
 
     def _principal(
@@ -319,13 +337,19 @@ class Robot:
             d4, d6 = self._lengths[3], self._lengths[5]
             r = math.hypot(pose[0, 3] - d6 * pose[0, 2], pose[1, 3] - d6 * pose[1, 2])
             shoulder = math.acos(min(1.0, d4 / r)) < _SINGULAR_NEAR
-            near = shoulder | (np.abs(np.sin(q[:, 2])) < _SINGULAR_NEAR) | (np.abs(np.sin(q[:, 4])) < _SINGULAR_NEAR)
-            if near.any():
-                q[near] = self._refine(q[near], pose, options)[0]
-                q = q - _TWO_PI * np.round(q / _TWO_PI)
-        close = np.abs(q[:, None, :] - q[None, :, :]).max(axis=2) <= options.dedupe_tol
-        duplicate = np.triu(close, k=1).any(axis=0)  # same as an earlier solution
-        return q[~duplicate], ""
+            polish = [
+                shoulder or abs(math.sin(s[2])) < _SINGULAR_NEAR or abs(math.sin(s[4])) < _SINGULAR_NEAR for s in found
+            ]
+            if not any(polish):
+                return q, ""  # regular pose: the 8 branches are distinct, no polishing or dedupe needed
+            flags = np.array(polish)
+            q[flags] = self._refine(q[flags], pose, options)[0]
+            q = q - _TWO_PI * np.round(q / _TWO_PI)
+        if len(q) > 1:
+            close = np.abs(q[:, None, :] - q[None, :, :]).max(axis=2) <= options.dedupe_tol
+            close[np.tril_indices(len(q))] = False
+            q = q[~close.any(axis=0)]  # drop copies of an earlier solution (at singular boundaries)
+        return q, ""
 
     def _refine(self, seeds: FloatArray, target: FloatArray, options: IKOptions) -> tuple[FloatArray, BoolArray]:
         """Gauss-Newton steps (least squares: safe at singular Jacobians) from each seed (k, 6) on this robot's
@@ -359,7 +383,23 @@ class Robot:
         if unlimited.any():
             q = q.copy()
             q[:, unlimited] += _TWO_PI * np.round((ref[unlimited] - q[:, unlimited]) / _TWO_PI)
-        cand = q[:, None, :] + self._branch_offsets[None, :, :]  # (k, C, 6)
+        if self._binary:  # limits are symmetric (+-position_limit)
+            jj = self._branch_joints
+            principal = q[:, jj]
+            alternative = principal - np.copysign(_TWO_PI, principal)
+            alt_ok = np.abs(alternative) <= self._upper[jj]
+            base_ok = np.all(np.abs(q) <= self._upper, axis=1)
+            if not all_branches:  # distance is separable per joint: pick each joint's nearest valid copy
+                use_alt = alt_ok & (np.abs(alternative - ref[jj]) < np.abs(principal - ref[jj]))
+                out = q.copy()
+                out[:, jj] = np.where(use_alt, alternative, principal)
+                return out[base_ok]
+            bits = self._branch_bits
+            valid = base_ok[:, None] & ~np.any(bits[None] & ~alt_ok[:, None, :], axis=2)  # (k, C)
+            cand = np.repeat(q[:, None, :], len(bits), axis=1)  # (k, C, 6)
+            cand[:, :, jj] = np.where(bits[None], alternative[:, None, :], principal[:, None, :])
+            return cand[valid]
+        cand = q[:, None, :] + self._branch_offsets[None, :, :]
         ok = np.all((cand >= self._lower - 1e-12) & (cand <= self._upper + 1e-12), axis=2)
         if not all_branches:
             dist = np.linalg.norm(cand - ref, axis=2)
@@ -381,9 +421,8 @@ class Robot:
         q6 = 0.0 if near is None else float(near[5])
         principal, _ = self._principal(pose, q6, opts, near)
         sols = self._branches(principal, near, opts.all_branches)
-        ref = near if near is not None else np.zeros(6)
-        order = np.argsort(np.linalg.norm(sols - ref, axis=1), kind="stable")
-        return sols[order]
+        diff = sols - (near if near is not None else 0.0)
+        return sols[np.argsort(np.einsum("ij,ij->i", diff, diff), kind="stable")]
 
     def ik_or_raise(
         self, base_from_flange: ArrayLike, q_near: ArrayLike | None = None, options: IKOptions | None = None
