@@ -239,11 +239,12 @@ def build_mjcf(
     free: bool,
     offscreen_size: tuple[int, int] = (640, 480),
     timestep_s: float = 0.002,
+    offscreen_samples: int = 4,
 ) -> str:
     """MJCF text of the scene: static boxes, one body per part (visual mesh + collision pieces in group 3).
 
     free: parts get free joints (physics) or are fixed at `poses` (rendering). offscreen_size: (W, H) of the
-    offscreen framebuffer, pixels.
+    offscreen framebuffer, pixels; offscreen_samples: multisampling of that framebuffer (0 = none).
     """
     assets: list[str] = []
     bodies: list[str] = []
@@ -294,7 +295,8 @@ def build_mjcf(
         '<mujoco model="normpos_scene"><compiler angle="radian" boundmass="1e-6" boundinertia="1e-12"/>'
         f'<option timestep="{timestep_s:.17g}" integrator="implicitfast" cone="elliptic"/>'
         '<statistic extent="2" center="0 0 0"/>'
-        f'<visual><global offwidth="{int(w)}" offheight="{int(h)}"/><quality shadowsize="0"/>'
+        f'<visual><global offwidth="{int(w)}" offheight="{int(h)}"/>'
+        f'<quality shadowsize="0" offsamples="{int(offscreen_samples)}"/>'
         '<headlight ambient="0.35 0.35 0.35" diffuse="0.45 0.45 0.45" specular="0.1 0.1 0.1"/></visual>'
         f"<asset>{''.join(assets)}</asset>"
         '<worldbody><light directional="true" pos="0 0 3" dir="0.3 0.2 -1" diffuse="0.5 0.5 0.5" castshadow="false"/>'

@@ -38,6 +38,7 @@ class SensorModel:
     rgb_read_noise_dn / rgb_shot_noise: RGB noise (digital numbers; shot scale per sqrt(DN)).
     rgb_gain: (min, max) global brightness factor; rgb_white_balance: per-channel gain jitter (sigma);
     rgb_gradient: peak relative brightness change of a random linear illumination gradient.
+    rgb_blur_px: Gaussian sigma (pixels) of the lens blur applied to RGB before noise (0 = none).
     """
 
     name: str = "ideal"
@@ -62,6 +63,7 @@ class SensorModel:
     rgb_gain: tuple[float, float] = (1.0, 1.0)
     rgb_white_balance: float = 0.0
     rgb_gradient: float = 0.0
+    rgb_blur_px: float = 0.0
 
     def __post_init__(self) -> None:
         if self.disparity_noise_px > 0 and self.baseline_m <= 0:
@@ -106,8 +108,11 @@ class SensorModel:
             edges = _depth_edges(truth, self.edge_jump_m, self.edge_hole_px)
             holes |= edges & (rng.random(truth.shape, dtype=np.float32) < self.edge_hole_prob)
         if self.grazing_deg < 90.0:
-            angle = _incidence_deg(truth, camera)
-            p = np.clip((angle - self.grazing_deg) / 10.0, 0.0, 1.0)
+            # drop probability ramps from 0 at grazing_deg to 1 at grazing_deg + 10 (linear in the cosine)
+            cos = _incidence_cos(truth, camera)
+            c0 = np.float32(np.cos(np.radians(self.grazing_deg)))
+            c1 = np.float32(np.cos(np.radians(min(self.grazing_deg + 10.0, 90.0))))
+            p = np.clip((c0 - cos) / max(c0 - c1, np.float32(1e-6)), 0.0, 1.0)
             holes |= rng.random(truth.shape, dtype=np.float32) < p
         depth = truth.copy()
         sigma = self.depth_sigma_m(truth, camera.fx)
@@ -148,6 +153,7 @@ class SensorModel:
             and self.rgb_gain == (1.0, 1.0)
             and self.rgb_white_balance <= 0
             and self.rgb_gradient <= 0
+            and self.rgb_blur_px <= 0
         ):
             return rgb.copy()
         h, w = rgb.shape[:2]
@@ -158,12 +164,16 @@ class SensorModel:
         u = np.linspace(-1, 1, w, dtype=np.float32)
         v = np.linspace(-1, 1, h, dtype=np.float32)
         ramp = 1.0 + amp * (np.float32(np.cos(phi)) * u[None, :] + np.float32(np.sin(phi)) * v[:, None])
+        import cv2
+
+        if self.rgb_blur_px > 0:
+            rgb = np.asarray(cv2.GaussianBlur(rgb, (0, 0), self.rgb_blur_px, borderType=cv2.BORDER_REFLECT), np.uint8)
         img = rgb.astype(np.float32)
-        img *= ramp[:, :, None] * wb  # illumination gradient x gain x white balance
+        img *= (ramp[:, :, None] * wb).astype(np.float32)  # illumination gradient x gain x white balance
         # per-channel noise sigma by look-up on the raw value (shot noise ~ sqrt of the signal)
         levels = np.arange(256, dtype=np.float32)[:, None] * wb[None, :]
         lut = np.sqrt(np.float32(self.rgb_read_noise_dn) ** 2 + np.float32(self.rgb_shot_noise) ** 2 * levels)
-        sigma = lut[rgb, np.arange(3)[None, None, :]]
+        sigma = cv2.LUT(np.ascontiguousarray(rgb), lut.reshape(1, 256, 3).astype(np.float32))
         sigma *= _normal_samples(img.shape, rng)
         img += sigma
         img += np.float32(0.5)
@@ -227,29 +237,32 @@ def _depth_edges(depth: FloatArray, jump_m: float, radius_px: int) -> BoolArray:
     return edge
 
 
-def _incidence_deg(depth: FloatArray, camera: Camera) -> FloatArray:
-    """(H, W) angle (degrees) between each pixel's viewing ray and the surface normal estimated from depth.
+def _incidence_cos(depth: FloatArray, camera: Camera) -> np.ndarray:
+    """(H, W) float32 cosine of the angle between each pixel's viewing ray and the surface normal from depth.
 
     With g = (fx dz/du, fy dz/dv) the normal is n = (-gx, -gy, gx x + gy y + z) for the ray r = (x, y, 1),
-    so cos = n.r / (|n| |r|) = z / (|n| |r|) (float32 suffices for a hole probability).
+    so cos = n.r / (|n| |r|) = z / (|n| |r|). Pixels without depth get 1 (no grazing hole).
     """
     z = depth.astype(np.float32)
-    zu = np.zeros_like(z)
-    zv = np.zeros_like(z)
-    zu[:, :-1] = z[:, 1:] - z[:, :-1]
-    zv[:-1] = z[1:] - z[:-1]
+    gx = np.zeros_like(z)
+    gy = np.zeros_like(z)
+    np.subtract(z[:, 1:], z[:, :-1], out=gx[:, :-1])
+    np.subtract(z[1:], z[:-1], out=gy[:-1])
+    gx *= np.float32(camera.fx)
+    gy *= np.float32(camera.fy)
     x = ((np.arange(camera.width, dtype=np.float32) - np.float32(camera.cx)) / np.float32(camera.fx))[None, :]
     y = ((np.arange(camera.height, dtype=np.float32) - np.float32(camera.cy)) / np.float32(camera.fy))[:, None]
-    gx = zu * np.float32(camera.fx)
-    gy = zv * np.float32(camera.fy)
-    nz = gx * x + gy * y + z
-    norm_n = np.sqrt(gx * gx + gy * gy + nz * nz)
-    norm_r = np.sqrt(x * x + y * y + np.float32(1.0))
+    nz = gx * x
+    nz += gy * y
+    nz += z
+    norm2 = gx * gx
+    norm2 += gy * gy
+    norm2 += nz * nz
+    norm2 *= x * x + y * y + np.float32(1.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        cos = np.where(norm_n > 0, z / (norm_n * norm_r), np.float32(1.0))
-    angle = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))).astype(np.float64)
-    angle[depth <= 0] = 0.0
-    return angle
+        cos = z / np.sqrt(norm2)
+    cos[~(depth > 0) | ~np.isfinite(cos)] = 1.0
+    return cos
 
 
 _RGB_TYPICAL = {
@@ -258,6 +271,7 @@ _RGB_TYPICAL = {
     "rgb_gain": (0.85, 1.15),
     "rgb_white_balance": 0.03,
     "rgb_gradient": 0.15,
+    "rgb_blur_px": 0.6,
 }
 
 #: Sensor presets; stereo disparity noise chosen to reproduce the RMS figures of sensor_noise.md at the
@@ -335,6 +349,7 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         rgb_gain=(0.95, 1.05),
         rgb_white_balance=0.01,
         rgb_gradient=0.05,
+        rgb_blur_px=0.5,
     ),
 }
 
