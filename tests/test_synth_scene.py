@@ -84,3 +84,9 @@ def test_part_selection_and_validation() -> None:
     with pytest.raises(InputError, match="clutter"):
         SceneOptions(clutter=1.5)
     assert compose_scene(SceneOptions(count=0), LIB).n_parts == 0
+
+
+def test_parts_that_fall_off_the_table_are_left_out() -> None:
+    layout = compose_scene(SceneOptions(count=5, container="table", table_size_m=(0.06, 0.06), seed=1), LIB)
+    assert layout.n_parts < 5
+    assert all(layout.world_from_object[k][2, 3] > -0.02 for k in range(layout.n_parts))

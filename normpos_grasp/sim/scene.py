@@ -363,7 +363,8 @@ def _spawn_poses(templates: list[Template], options: SceneOptions, rng: np.rando
 def compose_scene(options: SceneOptions, library: list[Template]) -> SceneLayout:
     """Drop `options.count` parts from `library` into the container and let them settle (MuJoCo physics).
 
-    Deterministic for `options.seed`. Raises SimulationError when the physics blows up.
+    Deterministic for `options.seed`. Parts that roll off the table are left out of the layout (logged).
+    Raises SimulationError when the physics blows up.
     """
     import mujoco
 
@@ -404,6 +405,12 @@ def compose_scene(options: SceneOptions, library: list[Template]) -> SceneLayout
         q = data.qpos[7 * i : 7 * i + 7]
         out[i] = make_pose(rotation_from_quaternion([q[4], q[5], q[6], q[3]]), q[:3])
     penetration = max((-float(data.contact[c].dist) for c in range(data.ncon)), default=0.0)
+    fallen = [i for i in range(len(templates)) if out[i, 2, 3] < -0.02]
+    if fallen:  # rolled off the table: not at rest anywhere, leave them out
+        logger.warning("scene seed %d: %d part(s) fell off the table and were removed", options.seed, len(fallen))
+        keep = [i for i in range(len(templates)) if i not in fallen]
+        templates = [templates[i] for i in keep]
+        out = out[keep]
     return SceneLayout(
         templates=tuple(templates),
         world_from_object=out,
