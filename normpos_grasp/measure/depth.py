@@ -107,38 +107,46 @@ def _box_mean(clean: Float32Array, valid: BoolArray, opts: DepthFillOptions) -> 
 def _edge_aware(clean: Float32Array, valid: BoolArray, mean: Float32Array, opts: DepthFillOptions) -> Float32Array:
     """Slope-limited window mean: a neighbour at Chebyshev pixel distance r counts when its depth lies within
     r * tol(z) of the centre's, tol(z) = max(edge_abs_tol_m, edge_rel_tol * z). A hole is filled with the
-    plain mean only when its window's valid depths span at most 2S * tol. One vectorised pass per window
-    offset ((2S+1)^2 passes over the image), no per-pixel loop.
+    plain mean only when its window's valid depths span at most 2S * tol.
+
+    Where every neighbour passes (checked with min/max filters of each radius r = 1..S) the result equals
+    the plain box mean; only the remaining pixels near discontinuities are averaged by a sparse gather of
+    their (2S+1)^2 neighbours. No per-pixel Python loop.
     """
     import cv2
 
     s = opts.half_window
-    k = 2 * s + 1
     h, w = clean.shape
-    pad = cv2.copyMakeBorder(clean, s, s, s, s, cv2.BORDER_CONSTANT, value=0.0)
-    tol = np.maximum(np.float32(opts.edge_abs_tol_m), np.float32(opts.edge_rel_tol) * clean)
-    total = np.zeros((h, w), np.float32)
-    count = np.zeros((h, w), np.float32)
-    diff = np.empty((h, w), np.float32)
-    ones = np.ones((h, w), np.float32)
-    for dy in range(k):
-        for dx in range(k):
-            r = float(max(abs(dy - s), abs(dx - s)))
-            nb = pad[dy : dy + h, dx : dx + w]
-            cv2.absdiff(nb, clean, dst=diff)
-            take = ((diff <= tol * r) if r > 0 else (diff <= tol)) & (nb > 0)
-            t8 = take.view(np.uint8)
-            cv2.accumulate(nb, total, mask=t8)
-            cv2.add(count, ones, dst=count, mask=t8)
-    out = (total / np.maximum(count, np.float32(1.0))).astype(np.float32, copy=False)
-    out[~valid | (count < opts.min_valid - 0.5)] = 0.0
+    abs_tol = np.float32(opts.edge_abs_tol_m)
+    rel_tol = np.float32(opts.edge_rel_tol)
+    tol = np.maximum(abs_tol, rel_tol * clean)
+    big = np.where(valid, clean, np.float32(np.inf))
+    flat = valid.copy()
+    wmin = wmax = clean
+    for r in range(1, s + 1):
+        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        wmax = np.asarray(cv2.dilate(clean, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0.0), np.float32)
+        wmin = np.asarray(cv2.erode(big, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf), np.float32)
+        with np.errstate(invalid="ignore"):
+            flat &= ((wmax - clean) <= r * tol) & ((clean - wmin) <= r * tol)
+    out = np.where(flat, mean, np.float32(0.0))
+    ys, xs = np.nonzero(valid & ~flat)
+    if ys.size:
+        pad = cv2.copyMakeBorder(clean, s, s, s, s, cv2.BORDER_CONSTANT, value=0.0).ravel()
+        dy, dx = np.mgrid[-s : s + 1, -s : s + 1]
+        offsets = (dy * (w + 2 * s) + dx).ravel()
+        ring = np.maximum(np.abs(dy), np.abs(dx)).ravel().astype(np.float32)
+        ring[ring == 0] = 1.0
+        base = (ys + s) * (w + 2 * s) + (xs + s)
+        nb = pad[base[:, None] + offsets[None, :]]  # (E, (2S+1)^2)
+        centre = clean[ys, xs][:, None]
+        take = (nb > 0) & (np.abs(nb - centre) <= tol[ys, xs][:, None] * ring[None, :])
+        cnt = take.sum(axis=1)
+        val = (nb * take).sum(axis=1) / np.maximum(cnt, 1)
+        out[ys, xs] = np.where(cnt >= opts.min_valid, val, np.float32(0.0))
     holes = ~valid & (mean > 0)
     if np.any(holes):
-        kernel = np.ones((k, k), np.uint8)
-        big = np.where(valid, clean, np.float32(np.inf))
-        wmin = cv2.erode(big, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-        wmax = cv2.dilate(clean, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0.0)
-        span_tol = 2 * s * np.maximum(np.float32(opts.edge_abs_tol_m), np.float32(opts.edge_rel_tol) * wmax)
+        span_tol = 2 * s * np.maximum(abs_tol, rel_tol * wmax)
         with np.errstate(invalid="ignore"):
             agree = holes & ((wmax - wmin) <= span_tol)
         out[agree] = mean[agree]

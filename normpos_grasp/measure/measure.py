@@ -175,13 +175,7 @@ def _measure_one(camera: Camera, raw_depth: FloatArray, inst: Instance, opts: Me
             f"depth, need {opts.min_points}; check the depth range or the mask"
         )
     rays = pixel_rays(camera)[y0:y1, x0:x1]
-    pmap = np.empty((*sub_depth.shape, 3))
-    pmap[:, :, :2] = rays * sub_depth[:, :, None]
-    pmap[:, :, 2] = sub_depth
-    normals_map = _normals(pmap, good, st, opts.max_normal_jump_m)
-    gy, gx = np.nonzero(good)
-    pts_cam = pmap[gy, gx]
-    nrm_cam = normals_map[gy, gx]
+    pts_cam, nrm_cam, gy, gx = _points_and_normals(rays, sub_depth, good, st, opts.max_normal_jump_m)
     pixels = np.column_stack([gx + x0, gy + y0]).astype(np.int64)
     if camera.world_from_camera is not None:
         wfc = camera.world_from_camera
@@ -201,47 +195,77 @@ def _measure_one(camera: Camera, raw_depth: FloatArray, inst: Instance, opts: Me
         frame=frame_name,
         viewpoint=viewpoint,
         instance_id=int(inst.instance_id),
-        centroid=points.mean(axis=0),
-        aabb_min=points.min(axis=0),
-        aabb_max=points.max(axis=0),
+        centroid=_col_mean(points),
+        aabb_min=_col_min(points),
+        aabb_max=_col_max(points),
         obb=oriented_box(points),
     )
 
 
-def _normals(pmap: FloatArray, good: BoolArray, step: int, jump: float) -> FloatArray:
-    """(h, w, 3) unit normals from central (or one-sided) differences over `good` pixels, facing the camera."""
+def _points_and_normals(
+    rays: FloatArray, depth: FloatArray, good: BoolArray, step: int, jump: float
+) -> tuple[FloatArray, FloatArray, IntArray, IntArray]:
+    """Camera points (N, 3) of the `good` pixels of a crop and their unit normals (N, 3) facing the camera.
+
+    Normals: cross product of the point differences along u and v, central where both neighbours `step`
+    pixels away are good and within `jump` metres in depth, one-sided where only one is, the viewing
+    direction where neither is. Works on the N good pixels only (gathers), not on the whole crop.
+    """
     h, w = good.shape
-    z = pmap[:, :, 2]
+    gy, gx = np.nonzero(good)
+    flat_good = good.ravel()
+    z = depth.ravel()
+    rx = rays[:, :, 0].ravel()
+    ry = rays[:, :, 1].ravel()
+    idx = gy * w + gx
+    zc = z[idx]
+    pc = np.empty((idx.size, 3))
+    pc[:, 0] = rx[idx] * zc
+    pc[:, 1] = ry[idx] * zc
+    pc[:, 2] = zc
 
-    def diff(axis: int) -> FloatArray:
-        fwd = np.zeros_like(pmap)
-        bwd = np.zeros_like(pmap)
-        ok_f = np.zeros_like(good)
-        ok_b = np.zeros_like(good)
-        if axis == 1 and w > step:
-            fwd[:, :-step] = pmap[:, step:] - pmap[:, :-step]
-            ok_f[:, :-step] = good[:, step:] & good[:, :-step] & (np.abs(z[:, step:] - z[:, :-step]) < jump)
-            bwd[:, step:] = fwd[:, :-step]
-            ok_b[:, step:] = ok_f[:, :-step]
-        elif axis == 0 and h > step:
-            fwd[:-step] = pmap[step:] - pmap[:-step]
-            ok_f[:-step] = good[step:] & good[:-step] & (np.abs(z[step:] - z[:-step]) < jump)
-            bwd[step:] = fwd[:-step]
-            ok_b[step:] = ok_f[:-step]
-        cnt = ok_f.astype(np.float64) + ok_b
-        tot = fwd * ok_f[:, :, None] + bwd * ok_b[:, :, None]
-        return np.divide(tot, cnt[:, :, None], out=np.zeros_like(tot), where=cnt[:, :, None] > 0)
+    def neighbour(dy: int, dx: int) -> tuple[FloatArray, FloatArray]:
+        ny, nx = gy + dy, gx + dx
+        inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+        nidx = np.clip(ny, 0, h - 1) * w + np.clip(nx, 0, w - 1)
+        zn = z[nidx]
+        ok = inside & flat_good[nidx] & (np.abs(zn - zc) < jump)
+        p = np.empty_like(pc)
+        p[:, 0] = rx[nidx] * zn
+        p[:, 1] = ry[nidx] * zn
+        p[:, 2] = zn
+        return p, ok.astype(np.float64)[:, None]
 
-    du = diff(1)
-    dv = diff(0)
+    def derivative(fwd: tuple[FloatArray, FloatArray], bwd: tuple[FloatArray, FloatArray]) -> FloatArray:
+        # central where both neighbours are usable, one-sided where one is, zero where none is
+        pf, wf = fwd
+        pb, wb = bwd
+        return np.asarray((pf * wf - pb * wb + pc * (wb - wf)) / np.maximum(wf + wb, 1.0))
+
+    du = derivative(neighbour(0, step), neighbour(0, -step))
+    dv = derivative(neighbour(step, 0), neighbour(-step, 0))
     n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=2)
-    view = -pmap / np.maximum(np.linalg.norm(pmap, axis=2, keepdims=True), 1e-12)
-    ok = norm > 1e-15
-    out = np.where(ok[:, :, None], n / np.maximum(norm, 1e-300)[:, :, None], view)
-    flip = np.einsum("ijk,ijk->ij", out, pmap) > 0
-    out[flip] *= -1.0
-    return out
+    norm = np.sqrt(np.einsum("ij,ij->i", n, n))
+    bad = norm < 1e-15
+    n[bad] = -pc[bad]
+    norm[bad] = np.sqrt(np.einsum("ij,ij->i", pc[bad], pc[bad]))
+    n /= np.maximum(norm, 1e-300)[:, None]
+    flip = np.einsum("ij,ij->i", n, pc) > 0
+    n[flip] *= -1.0
+    return pc, n, gy.astype(np.int64), gx.astype(np.int64)
+
+
+def _col_min(a: FloatArray) -> FloatArray:
+    """Column minima of an (N, 3) array (column-wise: much faster than axis=0 on C-ordered data)."""
+    return np.array([a[:, i].min() for i in range(a.shape[1])])
+
+
+def _col_max(a: FloatArray) -> FloatArray:
+    return np.array([a[:, i].max() for i in range(a.shape[1])])
+
+
+def _col_mean(a: FloatArray) -> FloatArray:
+    return np.asarray(np.ones(a.shape[0]) @ a / a.shape[0])
 
 
 def oriented_box(points: ArrayLike) -> OrientedBox:
@@ -250,9 +274,9 @@ def oriented_box(points: ArrayLike) -> OrientedBox:
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if pts.shape[0] == 0:
         raise MeasurementError("oriented_box needs at least one point")
-    mean = pts.mean(axis=0)
+    mean = _col_mean(pts)
     centred = pts - mean
-    cov = centred.T @ centred / max(pts.shape[0], 1)
+    cov = centred.T @ centred / pts.shape[0]
     _, vecs = np.linalg.eigh(cov)
     axes = vecs[:, ::-1].copy()
     for i in range(3):  # deterministic sign: largest |component| positive
@@ -261,7 +285,7 @@ def oriented_box(points: ArrayLike) -> OrientedBox:
     if np.linalg.det(axes) < 0:
         axes[:, 2] *= -1.0
     local = centred @ axes
-    lo, hi = local.min(axis=0), local.max(axis=0)
+    lo, hi = _col_min(local), _col_max(local)
     center = mean + axes @ ((lo + hi) / 2.0)
     return OrientedBox(center=center, axes=axes, extents=hi - lo)
 
