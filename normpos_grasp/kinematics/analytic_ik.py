@@ -61,43 +61,48 @@ def ik_single(
     if phi is None:
         return out, "out_of_reach"
     base = math.atan2(p05x, -p05y)
-    a2a3 = 2.0 * a2 * a3
+    inv_a2a3 = 1.0 / (2.0 * a2 * a3)
     aa = a2 * a2 + a3 * a3
+    hi, lo = 1.0 + slack, -1.0 - slack
+    pz_ = pz - d1 - d6 * az
     for si in range(2):
-        t1 = base + phi if si == 0 else base - phi
-        t1 = math.remainder(t1, _TWO_PI)
+        t1 = math.remainder(base + phi if si == 0 else base - phi, _TWO_PI)
         c1, s1 = math.cos(t1), math.sin(t1)
-        t5a = _acos((px * s1 - py * c1 - d4) / d6, slack)
-        if t5a is None:
+        c5 = (px * s1 - py * c1 - d4) / d6
+        if c5 > hi or c5 < lo:
             continue
+        c5 = min(1.0, max(-1.0, c5))
+        t5a = math.acos(c5)
+        s5a = math.sqrt(1.0 - c5 * c5)
         n_c = nx * c1 + ny * s1
         o_c = ox * c1 + oy * s1
         a_c = ax * c1 + ay * s1
-        num6 = -(ox * s1 - oy * c1)
+        num6 = oy * c1 - ox * s1
         den6 = nx * s1 - ny * c1
+        pxy = px * c1 + py * s1 - d6 * a_c
         for wi in range(2):
-            t5 = t5a if wi == 0 else -t5a
-            s5, c5 = math.sin(t5), math.cos(t5)
-            if abs(s5) < SINGULAR_SIN:
+            t5, s5 = (t5a, s5a) if wi == 0 else (-t5a, -s5a)
+            if s5a < SINGULAR_SIN:
                 t6 = q6_default
             else:
-                t6 = math.atan2(num6, den6) if s5 > 0 else math.atan2(-num6, -den6)
+                t6 = math.atan2(num6, den6) if wi == 0 else math.atan2(-num6, -den6)
             c6, s6 = math.cos(t6), math.sin(t6)
             x04x = -s5 * a_c - c5 * (s6 * o_c - c6 * n_c)
             x04y = c5 * (nz * c6 - oz * s6) - az * s5
-            p13x = d5 * (s6 * n_c + c6 * o_c) - d6 * a_c + px * c1 + py * s1
-            p13y = pz - d1 - d6 * az + d5 * (oz * c6 + nz * s6)
-            t3a = _acos((p13x * p13x + p13y * p13y - aa) / a2a3, slack)
-            if t3a is None:
+            t234 = math.atan2(x04y, x04x)
+            p13x = d5 * (s6 * n_c + c6 * o_c) + pxy
+            p13y = pz_ + d5 * (oz * c6 + nz * s6)
+            c3 = (p13x * p13x + p13y * p13y - aa) * inv_a2a3
+            if c3 > hi or c3 < lo:
                 continue
+            c3 = min(1.0, max(-1.0, c3))
+            t3a = math.acos(c3)
+            s3a = math.sqrt(1.0 - c3 * c3)
+            aa_ = a2 + a3 * c3
             for ei in range(2):
-                t3 = t3a if ei == 0 else -t3a
-                s3, c3 = math.sin(t3), math.cos(t3)
-                aa_ = a2 + a3 * c3
-                bb = a3 * s3
+                t3, bb = (t3a, a3 * s3a) if ei == 0 else (-t3a, -a3 * s3a)
                 t2 = math.atan2(aa_ * p13y - bb * p13x, aa_ * p13x + bb * p13y)
-                c23, s23 = math.cos(t2 + t3), math.sin(t2 + t3)
-                t4 = math.atan2(c23 * x04y - s23 * x04x, x04x * c23 + x04y * s23)
+                t4 = math.remainder(t234 - t2 - t3, _TWO_PI)
                 out[4 * si + 2 * wi + ei] = (t1, t2, t3, t4, t5, t6)
     return out, ("" if any(s is not None for s in out) else "out_of_reach")
 

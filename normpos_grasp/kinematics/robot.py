@@ -144,6 +144,7 @@ class Robot:
         self._lower, self._upper = -limits, limits
         self._lower.setflags(write=False)
         self._upper.setflags(write=False)
+        self._upper_list: list[float] = [float(v) for v in limits]
         # +-2 pi copies: with limits in (pi, 3 pi) each joint has at most one extra copy of a principal angle
         # (v - 2 pi sign v), so the branches are the 2^m on/off patterns of those m joints; wider limits take the
         # general path over every multiple of 2 pi.
@@ -228,7 +229,10 @@ class Robot:
 
     # --------------------------------------------------------------------------------------------- FK
     def _q(self, q: ArrayLike) -> FloatArray:
-        return as_float_array(q, "q", (6,))
+        arr = np.asarray(q, dtype=np.float64)
+        if arr.shape != (6,) or not np.isfinite(arr).all():
+            return as_float_array(q, "q", (6,))  # raises the detailed InputError
+        return arr
 
     def fk(self, q: ArrayLike) -> FloatArray:
         """base_from_flange (4, 4) at joint angles q (6,), radians (pinocchio)."""
@@ -409,6 +413,30 @@ class Robot:
             return np.clip(cand[np.arange(q.shape[0]), best][keep], self._lower, self._upper)
         return np.clip(cand[ok], self._lower, self._upper)  # removes the 1e-12 slack
 
+    def _nearest_copies(self, q: FloatArray, near: FloatArray | None) -> FloatArray:
+        """Scalar-math twin of `_branches(q, near, False)` for (pi, 3 pi) limits, sorted by distance to near
+        (numpy calls cost microseconds each; this path runs per pose inside planners)."""
+        ref = [0.0] * 6 if near is None else near.tolist()
+        limits = self._upper_list
+        rows: list[tuple[float, list[float]]] = []
+        for sol in q.tolist():
+            row = []
+            for j in range(6):
+                v, lim, r = sol[j], limits[j], ref[j]
+                if lim == math.inf:
+                    v += _TWO_PI * round((r - v) / _TWO_PI)
+                elif lim > math.pi:
+                    alt = v - math.copysign(_TWO_PI, v)
+                    if abs(alt) <= lim and abs(alt - r) < abs(v - r):
+                        v = alt
+                if abs(v) > lim:
+                    break
+                row.append(v)
+            else:
+                rows.append((sum((a - b) * (a - b) for a, b in zip(row, ref, strict=True)), row))
+        rows.sort(key=lambda item: item[0])
+        return np.array([row for _, row in rows], dtype=np.float64).reshape(-1, 6)
+
     def ik(
         self, base_from_flange: ArrayLike, q_near: ArrayLike | None = None, options: IKOptions | None = None
     ) -> FloatArray:
@@ -420,6 +448,8 @@ class Robot:
         near = None if q_near is None else self._q(q_near)
         q6 = 0.0 if near is None else float(near[5])
         principal, _ = self._principal(pose, q6, opts, near)
+        if not opts.all_branches and self._binary:
+            return self._nearest_copies(principal, near)
         sols = self._branches(principal, near, opts.all_branches)
         diff = sols - (near if near is not None else 0.0)
         return sols[np.argsort(np.einsum("ij,ij->i", diff, diff), kind="stable")]
