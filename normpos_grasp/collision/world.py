@@ -140,6 +140,8 @@ class CollisionWorld:
     _pair_mask: Any = None
     _low_links: Any = None
     _tool_centres: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    _last_opening: float = 0.0
+    _tool_posed_by_config: bool = False
     _held: tuple[str, fcl.CollisionObject, FloatArray] | None = None
     _held_radius: float = 0.0
     _mesh_cache: dict[int, fcl.BVHModel] = field(default_factory=dict)
@@ -367,6 +369,8 @@ class CollisionWorld:
         some element's box."""
         objs = self._tool_objs_inflated if inflated else self._tool_objs
         radii = self._tool_radii_inflated if inflated else self._tool_radii
+        if not inflated:
+            self._last_opening = opening_m
         poses = []
         for _obj, tcp_from_shape, size, moves in objs:
             pose = tcp_from_shape
@@ -431,6 +435,12 @@ class CollisionWorld:
             if what:
                 return Hit("arm", what, self.arm.shapes[i].link)
         if self_collision:
+            if self.tool is not None and not self._tool_posed_by_config:
+                # pose the tool (last opening) and held object at this configuration for the arm-vs-tool pairs
+                world_from_tcp = frames[6] @ self.tool.flange_from_tcp
+                self._pose_tool(world_from_tcp, self._last_opening)
+                if self._held is not None:
+                    self._held[1].setTransform(_tf(world_from_tcp @ self._held[2]))
             return self._self_collision(poses, centres, posed)
         return None
 
@@ -488,7 +498,11 @@ class CollisionWorld:
         if hit is None:
             hit = self.check_held(world_from_tcp, tuple(skip) + tuple(skip_held))
         if hit is None:
-            hit = self._check_arm(q, frames, skip, True)
+            self._tool_posed_by_config = True
+            try:
+                hit = self._check_arm(q, frames, skip, True)
+            finally:
+                self._tool_posed_by_config = False
         return hit
 
     def which(self, world_from_tcp: ArrayLike, opening_m: float = 0.0) -> list[str]:
