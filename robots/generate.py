@@ -98,8 +98,10 @@ Rated payload {p.payload_kg:g} kg, reach {p.reach_m:g} m: from UR datasheets / m
 footprint diameter {fmt(p.footprint_diameter_m)}, base height {fmt(g.base_height)}, shoulder offset
 {fmt(g.shoulder_offset)}, elbow offset {fmt(g.elbow_offset)}, radii: shoulder {fmt(g.shoulder_radius)}, upper arm
 {fmt(g.upper_arm_radius)}, elbow {fmt(g.elbow_radius)}, forearm {fmt(g.forearm_radius)}, wrist {fmt(g.wrist_radius)}.
-Source: {geo_src}. Conservative approximations for collision checks; verify against the UR drawing before
-relying on a clearance below ~1 cm.
+Source: {geo_src}. The footprint diameter is the base flange diameter on UR's datasheet for this model
+(UR3e 128, UR5e 149, UR10e/UR16e 190, UR20/UR30 245 mm; not re-checked against a current datasheet here).
+Conservative approximations for collision checks; verify against the UR drawing before relying on a
+clearance below ~1 cm.
 
 ## Other values
 

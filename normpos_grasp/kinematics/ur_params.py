@@ -63,7 +63,10 @@ def _scaled_geometry(footprint_diameter: float, d1: float, d4: float, d5: float)
     big = footprint_diameter / _UR5E_FOOTPRINT_DIAMETER
     lat = d4 / _UR5E_D4
     small = d5 / _UR5E_D5
-    r = lambda v: round(v, 4)  # noqa: E731
+
+    def r(value: float) -> float:
+        return round(value, 4)
+
     return LinkGeometry(
         footprint_radius=r(footprint_diameter / 2.0),
         base_height=r(0.5 * d1),
@@ -85,7 +88,7 @@ class URParams:
     position_limit: per-joint symmetric limit, radians (inf: unlimited). velocity_limit: rad/s.
     effort_limit: N m. masses: base, shoulder, upper arm, forearm, wrist 1-3, kg.
     payload_kg, reach_m: UR's rated figures (see robots/README.md for their status).
-    footprint_diameter_m: base footprint diameter (datasheet). geometry: collision sizes (None: scaled from
+    footprint_diameter_m: base footprint diameter (UR datasheets; not re-checked against current ones). geometry: collision sizes (None: scaled from
     the UR5e by `footprint_diameter_m`, d4 and d5; see `link_geometry`).
     """
 
