@@ -88,8 +88,8 @@ class URParams:
     position_limit: per-joint symmetric limit, radians (inf: unlimited). velocity_limit: rad/s.
     effort_limit: N m. masses: base, shoulder, upper arm, forearm, wrist 1-3, kg.
     payload_kg, reach_m: UR's rated figures (see robots/README.md for their status).
-    footprint_diameter_m: base footprint diameter (UR datasheets; not re-checked against current ones). geometry: collision sizes (None: scaled from
-    the UR5e by `footprint_diameter_m`, d4 and d5; see `link_geometry`).
+    footprint_diameter_m: base footprint diameter (UR datasheets; not re-checked against current ones).
+    geometry: collision sizes (None: scaled from the UR5e by `footprint_diameter_m`, d4 and d5; see `link_geometry`).
     """
 
     name: str
