@@ -200,7 +200,9 @@ class PhysicsOptions:
     timestep_s: MuJoCo step. settle_s: the scene settles with the hand at the pre-grasp pose first.
     approach_m / approach_s: straight approach along TCP z, distance and duration. press_m: how far a suction
     cup is driven past the surface (compresses the bellows). close_hold_s: time after the jaws stop (or the
-    vacuum builds) before lifting. lift_m / lift_s: vertical lift (world +z). move_m / move_s: sideways move
+    vacuum builds) before lifting. lift_m / lift_s: vertical lift (world +z); lift_to_z_m: when set, the lift
+    continues until the TCP is at least at this world height (out of a bin), its time growing as sqrt(distance).
+    move_m / move_s: sideways move
     (world +x, minimum-jerk: peak acceleration 5.8 * move_m / move_s^2). hold_s: hold at the end.
     slip_tolerance_m / slip_tolerance_rad: allowed motion of the object relative to the TCP from grip to end.
     collision_force_n / collision_penetration_m: a hand contact with the cell or a neighbour above either is a
@@ -222,6 +224,7 @@ class PhysicsOptions:
     close_hold_s: float = 0.2
     lift_m: float = 0.1
     lift_s: float = 0.5
+    lift_to_z_m: float | None = None
     move_m: float = 0.15
     move_s: float = 0.5
     hold_s: float = 0.3
@@ -630,15 +633,19 @@ def validate_grasp(
         close_s = (opening / 2.0 + 0.008) / (spec.closing_speed_m_s / 2.0)
     else:
         close_s = 0.05
+    lift_m = opts.lift_m
+    if opts.lift_to_z_m is not None:
+        lift_m = max(lift_m, float(opts.lift_to_z_m) - float(end_approach[2]))
+    lift_s = opts.lift_s * math.sqrt(lift_m / opts.lift_m) if opts.lift_m > 0 else opts.lift_s
     phases = [
         ("settle", opts.settle_s),
         ("approach", opts.approach_s),
         ("close", close_s + opts.close_hold_s),
-        ("lift", opts.lift_s),
+        ("lift", lift_s),
         ("move", opts.move_s),
         ("hold", opts.hold_s),
     ]
-    lift_vec = np.array([0.0, 0.0, opts.lift_m])
+    lift_vec = np.array([0.0, 0.0, lift_m])
     move_vec = np.array([opts.move_m, 0.0, 0.0])
     target_qadr = model.joint("target_free").qposadr[0]
     z0 = float(data.qpos[target_qadr + 2])
@@ -704,7 +711,7 @@ def validate_grasp(
         outcome, reason = "missed", "the gripper closed without touching the target"
         if seal is not None and not seal.sealed:
             outcome, reason = "drop", f"no vacuum seal ({seal.reason})"
-    elif not touching or lift < 0.5 * opts.lift_m:
+    elif not touching or lift < 0.5 * lift_m:
         outcome = "drop"
         reason = "the target fell out of the hand" if touching is False else "the target was not lifted"
         if seal is not None and not seal.sealed:

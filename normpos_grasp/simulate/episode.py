@@ -1,0 +1,415 @@
+"""One simulated bin-clearing episode: scene -> (render, segment, measure, fit, plan, physics) per pick.
+
+`run_scene(config, scene_index)` composes a settled scene of the default parts in the cell's bin, renders it
+through the cell's camera with the chosen sensor's noise, runs the real pipeline on the noisy frame, validates
+the chosen grasp in MuJoCo against the TRUE part poses, updates the scene from the physics' end state (a held
+part leaves, everything else lies where physics left it) and repeats until the bin is empty, the planner finds
+no feasible grasp, or `max_consecutive_failures` picks in a row failed. Everything is seeded from
+(config.seed, scene_index): the same call gives the same records on any machine and worker layout.
+
+Failure causes of a pick (first that applies): 'segmentation_miss' (the chosen instance covers no true part
+with IoU >= `match_iou`), 'no_feasible_grasp' (the planner found none while parts remained), 'wrong_fit' (the
+physics failed and the fitted pose is off the true one by more than `wrong_fit_m`), 'collision' (the hand hit
+something), 'physics_drop' (missed, dropped or slipped).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from normpos_grasp.errors import InputError, NormposError
+from normpos_grasp.geometry.transforms import make_pose, transform_points
+from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
+from normpos_grasp.templates.model import Template
+from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+CAUSES = ("segmentation_miss", "wrong_fit", "no_feasible_grasp", "physics_drop", "collision")
+SEGMENTERS = ("gt", "depth")
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """What a batch simulates (picklable: workers and Ray tasks receive it as is).
+
+    cell_path: cell YAML. sensor: sensor model name ('d435', 'ideal', ...). seed: batch seed.
+    parts: part names drawn into each scene (empty = the whole default library). parts_per_scene: how many.
+    segmenter: 'gt' (the rendering's visible masks with labels: an ideal segmenter) or 'depth' (model-free
+    depth segmentation, labels left to the template fit). renderer: 'auto', 'mujoco' or 'raycast'.
+    match_iou: an instance matches a true part at this mask IoU. wrong_fit_m: a fitted pose whose model points
+    lie this far (mean, symmetric closest point) from the true ones counts as a wrong fit, metres.
+    max_consecutive_failures: an episode stops after this many failed picks in a row.
+    clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
+    gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
+    resolution: (W, H) image size, pixels. physics: physics options.
+    """
+
+    cell_path: str
+    sensor: str = "d435"
+    seed: int = 0
+    parts: tuple[str, ...] = ()
+    parts_per_scene: int = 8
+    segmenter: str = "gt"
+    renderer: str = "auto"
+    match_iou: float = 0.5
+    wrong_fit_m: float = 0.005
+    max_consecutive_failures: int = 3
+    clutter: float = 0.3
+    stack_layers: int = 2
+    gripper: str = ""
+    resolution: tuple[int, int] = (640, 480)
+    physics: PhysicsOptions = field(default_factory=PhysicsOptions)
+
+    def __post_init__(self) -> None:
+        if self.segmenter not in SEGMENTERS:
+            raise InputError(f"segmenter must be one of {SEGMENTERS}, got {self.segmenter!r}")
+        if self.parts_per_scene < 1:
+            raise InputError(f"parts_per_scene must be >= 1, got {self.parts_per_scene}")
+        object.__setattr__(self, "parts", tuple(self.parts))
+
+
+@dataclass(frozen=True)
+class PickRecord:
+    """One attempted pick (one CSV row). success: the part was lifted and held. cause: '' or one of CAUSES.
+    part: true part name picked ('' when the grasp matched none); template: fitted template name.
+    depth_m: height of the part's centre above the bin floor; occlusion: 1 - visible share of its silhouette.
+    fit_error_m: mean symmetric closest-point distance of the fitted vs true model points (nan when unknown).
+    physics: physics outcome ('' when not simulated). Times in milliseconds."""
+
+    scene: int
+    pick: int
+    success: bool
+    cause: str
+    part: str
+    template: str
+    scheme: str
+    physics: str
+    reason: str
+    depth_m: float
+    occlusion: float
+    fit_error_m: float
+    slip_m: float
+    lift_m: float
+    parts_left: int
+    pipeline_ms: float
+    physics_ms: float
+
+    def row(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in self.__dict__.items():
+            out[key] = round(value, 6) if isinstance(value, float) else value
+        return out
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """All picks of one scene; n_parts: parts in the scene at the start; cleared: bin empty at the end."""
+
+    scene: int
+    n_parts: int
+    cleared: bool
+    picks: tuple[PickRecord, ...]
+
+
+def scene_seed(seed: int, scene_index: int) -> int:
+    """The composition seed of scene `scene_index` of a batch seeded `seed`."""
+    return int(np.random.SeedSequence([int(seed), int(scene_index), 0x51D]).generate_state(1)[0])
+
+
+def _gripper_spec(cell: Any, override: str) -> GripperSpec:
+    from normpos_grasp.kinematics.gripper import Gripper
+
+    name = override or str(getattr(cell.tool, "name", ""))
+    try:
+        return GripperSpec.from_gripper(Gripper.load(name))
+    except NormposError as exc:  # an unknown name falls back to the preset of the tool kind
+        logger.debug("gripper %r not packaged (%s); using the %s preset", name, exc, cell.tool.kind)
+    if name in ("2f85", "2f140", "suction"):
+        return GripperSpec.preset(name)
+    spec = GripperSpec.preset("suction" if cell.tool.kind == "suction" else "2f85")
+    if cell.tool.kind == "parallel" and cell.tool.stroke_m > 0:
+        spec = replace(spec, stroke_m=float(cell.tool.stroke_m))
+    return spec
+
+
+def _world_from_bin(cell: Any) -> FloatArray:
+    """The cell's bin pose (centre of the inner floor); simulate needs a cell with a bin to fill with parts."""
+    if cell.bin is None:
+        raise InputError(f"cell {cell.name!r} has no bin; simulate needs a cell with a bin to fill with parts")
+    return np.asarray(cell.bin.world_from_bin, dtype=np.float64)
+
+
+def _fit_error(fitted: FloatArray, true: FloatArray, samples: FloatArray) -> float:
+    """Mean closest-point distance between the model points at the fitted and at the true pose (ADD-S), m."""
+    from scipy.spatial import cKDTree
+
+    a = transform_points(fitted, samples)
+    b = transform_points(true, samples)
+    d, _ = cKDTree(b).query(a)
+    return float(np.mean(d))
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    inter = int(np.count_nonzero(a & b))
+    if inter == 0:
+        return 0.0
+    return inter / float(np.count_nonzero(a | b))
+
+
+def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
+    """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
+    from normpos_grasp.cell.config import load_cell
+    from normpos_grasp.measure.measure import MeasureOptions, measure_instances
+    from normpos_grasp.planning.plan import plan_pick
+    from normpos_grasp.sim.cameras import camera_intrinsics
+    from normpos_grasp.sim.dataset import render_frame
+    from normpos_grasp.sim.parts import default_part_library
+    from normpos_grasp.sim.render import make_renderer
+    from normpos_grasp.sim.scene import SceneOptions, compose_scene
+    from normpos_grasp.sim.sensor import sensor_preset
+    from normpos_grasp.templates.fit import FitContext, fit_best
+
+    cell = load_cell(Path(config.cell_path))
+    library = default_part_library()
+    spec = _gripper_spec(cell, config.gripper)
+    sensor = sensor_preset(config.sensor)
+    rng = np.random.default_rng(np.random.SeedSequence([int(config.seed), int(scene_index), 0xF4A]))
+    _world_from_bin(cell)
+    b = cell.bin
+    if b is None:  # checked by _world_from_bin; narrows the type
+        raise InputError("simulate needs a cell with a bin")
+    options = SceneOptions(
+        parts=config.parts,
+        count=config.parts_per_scene,
+        container="bin",
+        bin_inner_size_m=(float(b.inner_size[0]), float(b.inner_size[1])),
+        bin_wall_height_m=float(b.inner_size[2]),
+        bin_wall_thickness_m=float(b.wall_m),
+        bin_floor_thickness_m=float(b.wall_m),
+        clutter=config.clutter,
+        stack_layers=config.stack_layers,
+        seed=scene_seed(config.seed, scene_index),
+    )
+    layout = compose_scene(options, library)
+    cell_from_scene = _world_from_bin(cell) @ np.linalg.inv(_floor_pose(layout))
+    templates = list(layout.templates)
+    poses = np.array([cell_from_scene @ p for p in layout.world_from_object]).reshape(-1, 4, 4)
+    statics = tuple((name, cell_from_scene @ pose, np.asarray(size)) for name, pose, size in layout.static_boxes)
+    floor_z = float((cell_from_scene @ _floor_pose(layout))[2, 3])
+    camera = camera_intrinsics(config.sensor, config.resolution)
+    if cell.world_from_camera is None:
+        raise InputError(f"cell {cell.name!r} has no camera pose; simulate renders through the cell's camera")
+    camera = camera.with_extrinsics(cell.world_from_camera)
+    samples = {t.name: _model_points(t) for t in library}
+    n_start = len(templates)
+    records: list[PickRecord] = []
+    failures = 0
+    pick = 0
+    max_picks = 3 * n_start + 3
+    while templates and pick < max_picks and failures < config.max_consecutive_failures:
+        t0 = time.perf_counter()
+        current = replace(layout, templates=tuple(templates), world_from_object=poses, static_boxes=statics)
+        renderer = make_renderer(current, camera.width, camera.height, config.renderer)
+        try:
+            frame = render_frame(current, renderer, camera, sensor, rng, scene_id=scene_index, im_id=pick)
+        finally:
+            renderer.close()
+        if config.segmenter == "gt":
+            instances = list(frame.instances)
+        else:
+            from normpos_grasp.perception.depth_segmenter import DepthSegmenter
+
+            instances = DepthSegmenter().segment(frame.frame)
+        normpositions = measure_instances(frame.frame, instances, MeasureOptions(skip_failed=True))
+        context = FitContext(frame.frame.camera, frame.frame.depth_m)
+        fits = [replace(fit_best(np_, library, camera=context), instance_id=np_.instance_id) for np_ in normpositions]
+        plan = plan_pick(fits, normpositions, cell)
+        pipeline_ms = (time.perf_counter() - t0) * 1e3
+        visib = np.asarray(frame.visib_fractions, dtype=np.float64)
+        if plan.status != "ok" or plan.chosen is None:
+            cause = "segmentation_miss" if not instances else "no_feasible_grasp"
+            records.append(
+                _record(
+                    scene_index,
+                    pick,
+                    cause,
+                    "",
+                    "",
+                    "",
+                    None,
+                    np.nan,
+                    np.nan,
+                    np.nan,
+                    len(templates),
+                    pipeline_ms,
+                    0.0,
+                    _no_grasp_reason(plan.counts),
+                )
+            )
+            break
+        cand = plan.chosen.candidate
+        target = plan.targets[cand.target]
+        inst = next((i for i in instances if i.instance_id == target.instance_id), None)
+        ious = [_iou(inst.mask, m) for m in frame.rendering.masks_visible] if inst is not None else []
+        k = int(np.argmax(ious)) if ious else -1
+        matched = k >= 0 and ious[k] >= config.match_iou
+        if k < 0 or ious[k] <= 0.0:
+            records.append(
+                _record(
+                    scene_index,
+                    pick,
+                    "segmentation_miss",
+                    "",
+                    target.template,
+                    cand.scheme,
+                    None,
+                    np.nan,
+                    np.nan,
+                    np.nan,
+                    len(templates),
+                    pipeline_ms,
+                    0.0,
+                    "the chosen instance covers no part",
+                )
+            )
+            failures += 1
+            pick += 1
+            continue
+        true_pose = poses[k]
+        if target.template == templates[k].name:
+            pts = samples.get(templates[k].name)
+            pts = _model_points(templates[k]) if pts is None else pts
+            fit_err = _fit_error(np.asarray(target.world_from_object), true_pose, pts)
+        else:
+            fit_err = float("inf")  # the wrong template was fitted
+        neighbours = [(templates[j], poses[j]) for j in range(len(templates)) if j != k]
+        t1 = time.perf_counter()
+        physics_opts = replace(config.physics, lift_to_z_m=float(cell.entry_z) + config.physics.approach_m)
+        result = validate_grasp(
+            templates[k],
+            true_pose,
+            neighbours,
+            statics,
+            spec,
+            cand.world_from_tcp,
+            max(float(cand.opening_m), 1e-3) if spec.kind == "parallel" else 0.0,
+            physics_opts,
+        )
+        physics_ms = (time.perf_counter() - t1) * 1e3
+        depth = float(true_pose[2, 3] - floor_z)
+        occlusion = float(1.0 - visib[k]) if k < len(visib) else float("nan")
+        if result.success:
+            cause = ""
+        elif not matched:
+            cause = "segmentation_miss"
+        elif fit_err > config.wrong_fit_m:
+            cause = "wrong_fit"
+        elif result.outcome == "collision":
+            cause = "collision"
+        else:
+            cause = "physics_drop"
+        records.append(
+            _record(
+                scene_index,
+                pick,
+                cause,
+                templates[k].name,
+                target.template,
+                cand.scheme,
+                result,
+                depth,
+                occlusion,
+                fit_err,
+                len(templates),
+                pipeline_ms,
+                physics_ms,
+                result.reason,
+            )
+        )
+        # the scene as physics left it
+        others = [j for j in range(len(templates)) if j != k]
+        new_poses = {j: result.world_from_neighbours_final[n] for n, j in enumerate(others)}
+        if not result.success:
+            new_poses[k] = result.world_from_object_final
+            failures += 1
+        else:
+            failures = 0
+        keep = [j for j in sorted(new_poses) if _in_bin(new_poses[j], cell, floor_z)]
+        templates = [templates[j] for j in keep]
+        poses = np.array([new_poses[j] for j in keep]).reshape(-1, 4, 4)
+        pick += 1
+    return SceneResult(scene_index, n_start, not templates, tuple(records))
+
+
+def _no_grasp_reason(counts: dict[str, int]) -> str:
+    """'no feasible grasp' with the three most frequent rejection reasons of the planner."""
+    top = sorted(((n, r) for r, n in counts.items() if r != "not_evaluated"), reverse=True)[:3]
+    detail = ", ".join(f"{r} {n}" for n, r in top)
+    return f"no feasible grasp ({detail})" if detail else "no feasible grasp (no candidates)"
+
+
+def _model_points(template: Template, n: int = 500) -> FloatArray:
+    """(n, 3) surface samples of a template (deterministic), metres."""
+    import trimesh
+
+    pts, _ = trimesh.sample.sample_surface_even(template.mesh, n, seed=0)
+    return np.asarray(pts, dtype=np.float64)
+
+
+def _floor_pose(layout: Any) -> FloatArray:
+    """Pose (scene frame) of the bin floor's top centre."""
+    centre = np.asarray(layout.container_centre(), dtype=np.float64)
+    return make_pose(None, centre)
+
+
+def _in_bin(pose: FloatArray, cell: Any, floor_z: float) -> bool:
+    """Whether a part's origin still lies inside the bin's inner volume (parts that fell out leave the scene)."""
+    b = cell.bin
+    bin_pose = np.asarray(b.world_from_bin, dtype=np.float64)
+    local = np.linalg.inv(bin_pose) @ np.append(pose[:3, 3], 1.0)
+    inner = np.asarray(b.inner_size, dtype=np.float64)
+    return bool(abs(local[0]) <= inner[0] / 2.0 and abs(local[1]) <= inner[1] / 2.0 and pose[2, 3] >= floor_z - 0.02)
+
+
+def _record(
+    scene: int,
+    pick: int,
+    cause: str,
+    part: str,
+    template: str,
+    scheme: str,
+    result: PhysicsResult | None,
+    depth: float,
+    occlusion: float,
+    fit_err: float,
+    parts_left: int,
+    pipeline_ms: float,
+    physics_ms: float,
+    reason: str,
+) -> PickRecord:
+    return PickRecord(
+        scene=scene,
+        pick=pick,
+        success=result is not None and result.success,
+        cause=cause,
+        part=part,
+        template=template,
+        scheme=scheme,
+        physics=result.outcome if result is not None else "",
+        reason=reason,
+        depth_m=float(depth),
+        occlusion=float(occlusion),
+        fit_error_m=float(fit_err),
+        slip_m=float(result.slip_m) if result is not None else float("nan"),
+        lift_m=float(result.lift_m) if result is not None else float("nan"),
+        parts_left=parts_left,
+        pipeline_ms=float(pipeline_ms),
+        physics_ms=float(physics_ms),
+    )
