@@ -20,7 +20,7 @@ from normpos_grasp.camera.model import Camera
 from normpos_grasp.errors import InputError, SimulationError
 from normpos_grasp.geometry.transforms import invert_pose, transform_points
 from normpos_grasp.sim.parts import PART_COLORS
-from normpos_grasp.sim.scene import SceneLayout, build_mjcf, load_model
+from normpos_grasp.sim.scene import SceneLayout, build_mjcf, import_mujoco, load_model
 from normpos_grasp.typing import BoolArray, FloatArray, UInt8Array
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -162,8 +162,7 @@ def _gl_context(width: int, height: int) -> Any:
     if _GL_FAILED is not None:
         raise SimulationError(_GL_FAILED)
     try:
-        import mujoco
-
+        mujoco = import_mujoco()
         ctx = mujoco.GLContext(max(width, 64), max(height, 64))
         ctx.make_current()
         probe = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size="0.1"/></worldbody></mujoco>')
@@ -195,8 +194,7 @@ class MujocoSceneRenderer:
     """
 
     def __init__(self, layout: SceneLayout, width: int, height: int, multisample: int = 0) -> None:
-        import mujoco
-
+        mujoco = import_mujoco()
         self.layout = layout
         self.width, self.height = int(width), int(height)
         self._ctx = _gl_context(self.width, self.height)
@@ -235,8 +233,7 @@ class MujocoSceneRenderer:
             self.context = None
 
     def _set_camera(self, camera: Camera) -> tuple[float, float]:
-        import mujoco
-
+        mujoco = import_mujoco()
         mujoco.mjv_updateScene(
             self.model, self.data, self.option, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self.scene
         )
@@ -264,8 +261,7 @@ class MujocoSceneRenderer:
 
     def render(self, camera: Camera) -> Rendering:
         """Render the layout through `camera` (needs world_from_camera; distortion is ignored)."""
-        import mujoco
-
+        mujoco = import_mujoco()
         if (camera.width, camera.height) != (self.width, self.height):
             raise InputError(
                 f"this renderer was built for {self.width}x{self.height}, got a {camera.width}x{camera.height} camera"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -131,6 +132,29 @@ class SceneLayout:
         return np.array([0.0, 0.0, float(z)])
 
 
+def import_mujoco() -> Any:
+    """Import `mujoco`; if its OpenGL backend (MUJOCO_GL) cannot even load, retry with rendering disabled.
+
+    Physics then still works and the renderer falls back to ray casting. Raises SimulationError when MuJoCo
+    itself is missing.
+    """
+    try:
+        import mujoco
+
+        return mujoco
+    except ModuleNotFoundError as exc:
+        raise SimulationError(f"the mujoco package is needed for scene physics: {exc}") from exc
+    except Exception as exc:  # a broken GL backend raises AttributeError/OSError/RuntimeError at import time
+        backend = os.environ.get("MUJOCO_GL", "")
+        logger.warning("import mujoco failed with MUJOCO_GL=%r (%s); retrying with OpenGL disabled", backend, exc)
+        for name in [m for m in sys.modules if m == "mujoco" or m.startswith("mujoco.")]:
+            del sys.modules[name]
+        os.environ["MUJOCO_GL"] = "disable"
+        import mujoco
+
+        return mujoco
+
+
 # -- static geometry -------------------------------------------------------------------------
 def static_boxes(options: SceneOptions) -> tuple[StaticBox, ...]:
     """The table and the container as boxes (name, world_from_box, full size), metres."""
@@ -188,8 +212,7 @@ def _ifmt(values: Any) -> str:
 
 
 def _quat_wxyz(rotation: FloatArray) -> FloatArray:
-    import mujoco
-
+    mujoco = import_mujoco()
     q = np.zeros(4)
     mujoco.mju_mat2Quat(q, np.ascontiguousarray(rotation, dtype=np.float64).reshape(-1))
     return q
@@ -305,8 +328,7 @@ def build_mjcf(
 
 
 def load_model(xml: str) -> mujoco.MjModel:
-    import mujoco
-
+    mujoco = import_mujoco()
     try:
         return mujoco.MjModel.from_xml_string(xml)
     except ValueError as exc:
@@ -366,7 +388,7 @@ def compose_scene(options: SceneOptions, library: list[Template]) -> SceneLayout
     Deterministic for `options.seed`. Parts that roll off the table are left out of the layout (logged).
     Raises SimulationError when the physics blows up.
     """
-    import mujoco
+    mujoco = import_mujoco()
 
     rng = np.random.default_rng(options.seed)
     templates = _choose_parts(options, library, rng)
