@@ -150,3 +150,25 @@ def test_gripper_mounting_offset_and_bad_yaml(tmp_path: Path) -> None:
         Gripper.load("nope")
     s = Gripper.suction(cup_diameter_m=0.05, cup_stroke_m=0.02)
     assert s.cup_diameter_m == 0.05 and s.kind == "suction"
+
+
+@pytest.mark.parametrize("gripper_name", GRIPPER_NAMES)
+def test_arm_model_with_a_gripper_attached(gripper_name: str) -> None:
+    robot = Robot.load("ur10e")
+    tool = Gripper.load(gripper_name)
+    offset = np.eye(4)
+    offset[2, 3] = 0.015
+    tool = tool.mounted(offset)
+    model = robot.mujoco_model(tool, opening_m=None)
+    data = mujoco.MjData(model)
+    assert model.ngeom == len(robot.collision_geometry) + len(tool.collision_shapes())
+    q = np.array([0.4, -1.1, 1.3, -1.9, -1.4, 0.6])
+    data.qpos[:] = q
+    mujoco.mj_forward(model, data)
+    tcp = robot.fk(q) @ tool.flange_from_tcp
+    np.testing.assert_allclose(data.site("tcp").xpos, tcp[:3, 3], atol=1e-9)
+    assert data.ncon == 0
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    for _ in range(200):
+        mujoco.mj_step(model, data)
+    assert all(w.number == 0 for w in data.warning)

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from normpos_grasp.kinematics.dh import DHChain
+from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.shapes import ARM_LINKS, CollisionShape, arm_collision_shapes
 from normpos_grasp.kinematics.ur_params import JOINT_NAMES, URParams
 from normpos_grasp.typing import FloatArray
@@ -91,9 +92,17 @@ def _inertial(mass: float, shapes: list[CollisionShape]) -> str:
     return f'<inertial {_placement(shape.link_from_shape)} mass="{fmt(mass)}" diaginertia="{inertia}"/>'
 
 
-def arm_mjcf(params: URParams, chain: DHChain | None = None, model_name: str | None = None) -> str:
+def arm_mjcf(
+    params: URParams,
+    chain: DHChain | None = None,
+    model_name: str | None = None,
+    gripper: Gripper | None = None,
+    opening_m: float | None = None,
+) -> str:
     """MJCF document of a UR arm: bodies per `ARM_LINKS`, hinge joints with limits, collision capsules,
-    inertials from the link masses, position actuators, a `home` keyframe and `flange` site."""
+    inertials from the link masses, position actuators, a `home` keyframe and `flange` site. With `gripper`,
+    a fixed body `gripper` at the flange carries its collision shapes at `opening_m` (default fully open), its
+    mass, and a `tcp` site."""
     chain = chain or DHChain.nominal(params)
     shapes = arm_collision_shapes(params)
     by_link = {link: [s for s in shapes if s.link == link] for link in ARM_LINKS}
@@ -124,6 +133,8 @@ def arm_mjcf(params: URParams, chain: DHChain | None = None, model_name: str | N
         lines += [indent + _geom(s, _RGBA[i + 1]) for s in by_link[link]]
         placement = chain.link_transform(i)
     lines.append(f'{indent}<site name="flange" {_placement(placement)} size="0.005"/>')
+    if gripper is not None:
+        lines += _gripper_body(gripper, opening_m, placement, indent)
     for _ in range(6):
         indent = indent[:-2]
         lines.append(f"{indent}</body>")
@@ -133,6 +144,8 @@ def arm_mjcf(params: URParams, chain: DHChain | None = None, model_name: str | N
     lines.append('    <exclude body1="base" body2="shoulder"/>')
     for i in range(len(ARM_LINKS) - 2):
         lines.append(f'    <exclude body1="{ARM_LINKS[i]}" body2="{ARM_LINKS[i + 2]}"/>')
+    if gripper is not None:
+        lines.append('    <exclude body1="wrist_2" body2="gripper"/>')
     lines += ["  </contact>", "  <actuator>"]
     for i, joint in enumerate(JOINT_NAMES):
         effort = params.effort_limit[i]
@@ -150,6 +163,23 @@ def arm_mjcf(params: URParams, chain: DHChain | None = None, model_name: str | N
         "</mujoco>",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _gripper_body(gripper: Gripper, opening_m: float | None, wrist3_from_flange: FloatArray, indent: str) -> list[str]:
+    """Lines of the fixed `gripper` body (frame = flange) with its shapes, inertial and `tcp` site."""
+    flange_from_tcp = gripper.flange_from_tcp
+    shapes = [s.transformed(flange_from_tcp, "gripper") for s in gripper.collision_shapes(opening_m)]
+    centre = np.eye(4)
+    centre[:3, 3] = flange_from_tcp[:3, 3] / 2.0
+    r = max(0.02, float(np.linalg.norm(flange_from_tcp[:3, 3])) / 4.0)
+    i_val = round(0.4 * gripper.mass_kg * r * r, 9)
+    out = [
+        f'{indent}<body name="gripper" {_placement(wrist3_from_flange)}>',
+        f'{indent}  <inertial {_placement(centre)} mass="{fmt(gripper.mass_kg)}" diaginertia="{_vec([i_val] * 3)}"/>',
+    ]
+    out += [f"{indent}  " + _geom(s, "0.3 0.3 0.3 1") for s in shapes]
+    out += [f'{indent}  <site name="tcp" {_placement(flange_from_tcp)} size="0.005"/>', f"{indent}</body>"]
+    return out
 
 
 def scene_mjcf(robot_file: str, model_name: str) -> str:

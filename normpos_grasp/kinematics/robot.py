@@ -22,6 +22,7 @@ import pinocchio as pin
 from normpos_grasp.errors import InputError, NoIKSolution, RobotModelError
 from normpos_grasp.kinematics.analytic_ik import dh_lengths, ik_batch, ik_single
 from normpos_grasp.kinematics.dh import DHCalibration, DHChain
+from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.mjcf import arm_mjcf
 from normpos_grasp.kinematics.shapes import ARM_LINKS, CollisionShape, arm_collision_shapes
 from normpos_grasp.kinematics.ur_params import JOINT_NAMES, URParams, ur_params
@@ -190,16 +191,18 @@ class Robot:
         """Path of the committed scene file (robots/<name>/scene.xml)."""
         return Path(str(resources.files("normpos_grasp.robot_models") / self.name / "scene.xml"))
 
-    def mjcf_xml(self) -> str:
-        """MJCF text of this arm (the calibrated chain when calibrated)."""
-        return arm_mjcf(self.params, self.chain)
+    def mjcf_xml(self, gripper: Gripper | None = None, opening_m: float | None = None) -> str:
+        """MJCF text of this arm (the calibrated chain when calibrated), with `gripper` at the flange if given
+        (body 'gripper', site 'tcp')."""
+        return arm_mjcf(self.params, self.chain, gripper=gripper, opening_m=opening_m)
 
-    def mujoco_model(self) -> mujoco.MjModel:
-        """A fresh MuJoCo model of this arm (the committed file, or built from the calibrated chain)."""
+    def mujoco_model(self, gripper: Gripper | None = None, opening_m: float | None = None) -> mujoco.MjModel:
+        """A fresh MuJoCo model of this arm (the committed file, or built from the calibrated chain or with a
+        gripper attached: body 'gripper', site 'tcp')."""
         import mujoco
 
-        if self.calibrated:
-            return mujoco.MjModel.from_xml_string(self.mjcf_xml())
+        if self.calibrated or gripper is not None:
+            return mujoco.MjModel.from_xml_string(self.mjcf_xml(gripper, opening_m))
         if not self.mjcf_path.is_file():
             raise RobotModelError(
                 f"{self.mjcf_path} is missing; regenerate with `python -m normpos_grasp.robot_models.generate`"
