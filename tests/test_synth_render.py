@@ -150,3 +150,15 @@ def test_auto_falls_back_to_ray_casting_without_opengl(monkeypatch: pytest.Monke
     assert isinstance(render_mod.make_renderer(layout, W, H, "auto"), render_mod.RaycastSceneRenderer)
     with pytest.raises(SimulationError, match="no OpenGL"):
         render_mod.make_renderer(layout, W, H, "mujoco")
+
+
+def test_distorted_or_unposed_cameras_are_refused() -> None:
+    from normpos_grasp.errors import InputError
+    from normpos_grasp.sim.render import render
+
+    layout = SceneLayout((), np.zeros((0, 4, 4)), static_boxes(SceneOptions(container="table")))
+    pose = camera_pose([0, 0, 0], 0.5, 0.0, 0.0)
+    with pytest.raises(InputError, match="distortion"):
+        render(layout, Camera(K, 640, 480, np.array([0.1, 0, 0, 0, 0]), world_from_camera=pose), "raycast")
+    with pytest.raises(InputError, match="world_from_camera"):
+        render(layout, Camera(K, 640, 480), "raycast")

@@ -141,6 +141,15 @@ def _full_masks(layout: SceneLayout, camera: Camera, depth: FloatArray, ids: np.
     return masks
 
 
+def _check_camera(camera: Camera) -> None:
+    if camera.has_distortion:
+        raise InputError(
+            "the renderer draws ideal pinhole images: pass a camera with zero distortion "
+            "(undistort real intrinsics first, e.g. with cv2.getOptimalNewCameraMatrix)"
+        )
+    camera.require_world_from_camera()
+
+
 def _visible_masks(ids: np.ndarray, n: int) -> BoolArray:
     return ids[None, :, :] == np.arange(1, n + 1, dtype=ids.dtype)[:, None, None]
 
@@ -260,7 +269,8 @@ class MujocoSceneRenderer:
         return float(self.scene.camera[0].frustum_near), float(self.scene.camera[0].frustum_far)
 
     def render(self, camera: Camera) -> Rendering:
-        """Render the layout through `camera` (needs world_from_camera; distortion is ignored)."""
+        """Render the layout through `camera` (needs world_from_camera and zero distortion)."""
+        _check_camera(camera)
         mujoco = import_mujoco()
         if (camera.width, camera.height) != (self.width, self.height):
             raise InputError(
@@ -335,6 +345,8 @@ class RaycastSceneRenderer:
         return None
 
     def render(self, camera: Camera) -> Rendering:
+        """Render the layout through `camera` (needs world_from_camera and zero distortion)."""
+        _check_camera(camera)
         h, w = camera.height, camera.width
         if (w, h) != (self.width, self.height):
             raise InputError(f"this renderer was built for {self.width}x{self.height}, got {w}x{h}")
@@ -378,6 +390,7 @@ def make_renderer(layout: SceneLayout, width: int, height: int, backend: str = "
 
 def render(layout: SceneLayout, camera: Camera, backend: str = "auto") -> Rendering:
     """Render `layout` through `camera` (with world_from_camera). For many views build `make_renderer` once."""
+    _check_camera(camera)
     renderer = make_renderer(layout, camera.width, camera.height, backend)
     try:
         return renderer.render(camera)
