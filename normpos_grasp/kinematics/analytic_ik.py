@@ -132,17 +132,20 @@ def ik_batch(
         c1, s1 = np.cos(t1), np.sin(t1)
         c5a = (px * s1 - py * c1 - d4) / d6  # (N, 2)
         ok5 = np.abs(c5a) <= 1.0 + _ACOS_SLACK
-        t5a = np.arccos(np.clip(c5a, -1.0, 1.0))
+        c5h = np.clip(c5a, -1.0, 1.0)
+        t5a = np.arccos(c5h)
+        s5a = np.sqrt(1.0 - c5h * c5h)  # sin of +t5a (>= 0); the other wrist branch has -s5a
         t5 = np.stack([t5a, -t5a], axis=2)  # (N, 2, 2)
-        s5, c5 = np.sin(t5), np.cos(t5)
+        s5 = np.stack([s5a, -s5a], axis=2)
+        c5 = c5h[:, :, None]
         num6 = (oy * c1 - ox * s1)[:, :, None]
         den6 = (nx * s1 - ny * c1)[:, :, None]
-        sgn = np.where(s5 >= 0.0, 1.0, -1.0)
-        t6 = np.arctan2(sgn * num6, sgn * den6)
-        singular = np.abs(s5) < SINGULAR_SIN
+        sgn = np.array([1.0, -1.0])
+        t6 = np.arctan2(sgn * num6, sgn * den6)  # (N, 2, 2)
+        singular = s5a < SINGULAR_SIN
         if np.any(singular):
             q6d = np.broadcast_to(np.asarray(q6_default, dtype=np.float64).reshape(-1, 1, 1), (n, 2, 2))
-            t6 = np.where(singular, q6d, t6)
+            t6 = np.where(singular[:, :, None], q6d, t6)
         c6, s6 = np.cos(t6), np.sin(t6)
         c1e, s1e = c1[:, :, None], s1[:, :, None]
         n_c = nx[:, :, None] * c1e + ny[:, :, None] * s1e
@@ -150,22 +153,21 @@ def ik_batch(
         a_c = ax[:, :, None] * c1e + ay[:, :, None] * s1e
         x04x = -s5 * a_c - c5 * (s6 * o_c - c6 * n_c)
         x04y = c5 * (nz[:, :, None] * c6 - oz[:, :, None] * s6) - az[:, :, None] * s5
+        t234 = np.arctan2(x04y, x04x)[..., None]
         p13x = d5 * (s6 * n_c + c6 * o_c) - d6 * a_c + px[:, :, None] * c1e + py[:, :, None] * s1e
         p13y = (pz - d1 - d6 * az)[:, :, None] + d5 * (oz[:, :, None] * c6 + nz[:, :, None] * s6)
         c3a = (p13x * p13x + p13y * p13y - (a2 * a2 + a3 * a3)) / (2.0 * a2 * a3)  # (N, 2, 2)
         ok3 = np.abs(c3a) <= 1.0 + _ACOS_SLACK
-        t3a = np.arccos(np.clip(c3a, -1.0, 1.0))
+        c3h = np.clip(c3a, -1.0, 1.0)
+        t3a = np.arccos(c3h)
         t3 = np.stack([t3a, -t3a], axis=3)  # (N, 2, 2, 2)
-        c3 = np.clip(c3a, -1.0, 1.0)[..., None]
-        s3 = np.sin(t3)
-        aa = a2 + a3 * c3
-        bb = a3 * s3
+        bb_a = a3 * np.sqrt(1.0 - c3h * c3h)
+        bb = np.stack([bb_a, -bb_a], axis=3)  # a3 sin(t3)
+        aa = (a2 + a3 * c3h)[..., None]
         p13x, p13y = p13x[..., None], p13y[..., None]
         t2 = np.arctan2(aa * p13y - bb * p13x, aa * p13x + bb * p13y)
-        t23 = t2 + t3
-        c23, s23 = np.cos(t23), np.sin(t23)
-        x04x, x04y = x04x[..., None], x04y[..., None]
-        t4 = np.arctan2(c23 * x04y - s23 * x04x, x04x * c23 + x04y * s23)
+        t4 = t234 - t2 - t3
+        t4 -= _TWO_PI * np.round(t4 / _TWO_PI)
     valid = (ok1[:, :, None, None] & ok5[:, :, None, None] & ok3[..., None]) & np.ones((1, 1, 1, 2), dtype=bool)
     shape = (n, 2, 2, 2)
     q5d = np.empty((n, 2, 2, 2, 6))
