@@ -65,10 +65,14 @@ def valid_depth_mask(depth_m: ArrayLike, min_depth_m: float = 0.05, max_depth_m:
         return np.asarray(np.isfinite(d) & (d > 0) & (d >= min_depth_m) & (d <= max_depth_m))
 
 
-def fill_depth(depth_m: ArrayLike, options: DepthFillOptions | None = None) -> FloatArray:
+def fill_depth(
+    depth_m: ArrayLike, options: DepthFillOptions | None = None, region: BoolArray | None = None
+) -> FloatArray:
     """Window estimate of depth (Eq. 6-7), (H, W) metres in, (H, W) float64 metres out (0 = no estimate).
 
-    Sums run in float32 box filters (OpenCV accumulates them in float64); the input is not modified.
+    `region` (H, W) bool, optional: the pixels whose values are needed; the edge-aware estimate may leave
+    the others at 0 (it skips their slow path). Sums run in float32 box filters (OpenCV accumulates them in
+    float64); the input is not modified.
     """
     opts = DepthFillOptions() if options is None else options
     d = _as_depth(depth_m)
@@ -80,7 +84,9 @@ def fill_depth(depth_m: ArrayLike, options: DepthFillOptions | None = None) -> F
     if not opts.edge_aware:
         out = mean.astype(np.float64)
     else:
-        out = _edge_aware(clean, valid, mean, opts).astype(np.float64)
+        if region is not None and np.shape(region) != d.shape:
+            raise InputError(f"region must be {d.shape} like the depth, got {np.shape(region)}")
+        out = _edge_aware(clean, valid, mean, opts, region).astype(np.float64)
     if opts.fill_only:
         out[valid] = d[valid]
     return out
@@ -104,7 +110,9 @@ def _box_mean(clean: Float32Array, valid: BoolArray, opts: DepthFillOptions) -> 
     return mean, count
 
 
-def _edge_aware(clean: Float32Array, valid: BoolArray, mean: Float32Array, opts: DepthFillOptions) -> Float32Array:
+def _edge_aware(
+    clean: Float32Array, valid: BoolArray, mean: Float32Array, opts: DepthFillOptions, region: BoolArray | None
+) -> Float32Array:
     """Slope-limited window mean: a neighbour at Chebyshev pixel distance r counts when its depth lies within
     r * tol(z) of the centre's, tol(z) = max(edge_abs_tol_m, edge_rel_tol * z). A hole is filled with the
     plain mean only when its window's valid depths span at most 2S * tol.
@@ -130,7 +138,10 @@ def _edge_aware(clean: Float32Array, valid: BoolArray, mean: Float32Array, opts:
         with np.errstate(invalid="ignore"):
             flat &= ((wmax - clean) <= r * tol) & ((clean - wmin) <= r * tol)
     out = np.where(flat, mean, np.float32(0.0))
-    ys, xs = np.nonzero(valid & ~flat)
+    need = valid & ~flat
+    if region is not None:
+        need &= region
+    ys, xs = np.nonzero(need)
     if ys.size:
         pad = cv2.copyMakeBorder(clean, s, s, s, s, cv2.BORDER_CONSTANT, value=0.0).ravel()
         dy, dx = np.mgrid[-s : s + 1, -s : s + 1]
@@ -145,6 +156,8 @@ def _edge_aware(clean: Float32Array, valid: BoolArray, mean: Float32Array, opts:
         val = (nb * take).sum(axis=1) / np.maximum(cnt, 1)
         out[ys, xs] = np.where(cnt >= opts.min_valid, val, np.float32(0.0))
     holes = ~valid & (mean > 0)
+    if region is not None:
+        holes &= region
     if np.any(holes):
         span_tol = 2 * s * np.maximum(abs_tol, rel_tol * wmax)
         with np.errstate(invalid="ignore"):
