@@ -288,3 +288,27 @@ def test_measure_cli_on_lmo(tmp_path: Path) -> None:
     assert len(cloud.points) == obj["n_points"]
     assert main(["measure", str(tmp_path / "missing"), "--out", str(tmp_path)]) == 2
     assert main(["measure", str(LMO / "test"), "--out", str(tmp_path), "--frames", "99"]) == 2
+
+
+@needs_lmo
+def test_measure_cli_other_segmenters(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from normpos_grasp.cli.main import main
+
+    assert main(["measure", str(LMO / "test" / "000002"), "--out", str(tmp_path), "--segmenter", "depth"]) == 0
+    data = json.loads((tmp_path / "000002" / "000003.json").read_text())
+    assert len(data["objects"]) >= 1 and all(o["n_points"] > 0 for o in data["objects"])
+    # a segmenter module that is not installed gives exit code 2 and a clear error, not a traceback
+    monkeypatch.setitem(sys.modules, "normpos_grasp.perception.depth_segmenter", None)
+    assert main(["measure", str(LMO / "test"), "--out", str(tmp_path), "--segmenter", "depth"]) == 2
+
+
+def test_fill_region_must_match() -> None:
+    depth = np.full((8, 8), 1.0)
+    region = np.zeros((8, 8), bool)
+    region[2:5, 2:5] = True
+    out = fill_depth(depth, DepthFillOptions(half_window=1, edge_aware=True), region=region)
+    assert np.allclose(out[region], 1.0)
+    with pytest.raises(InputError, match="region"):
+        fill_depth(depth, DepthFillOptions(edge_aware=True), region=region[1:])
