@@ -98,6 +98,35 @@ class _Element:
     geom: Any
     lo: FloatArray
     hi: FloatArray
+    box: tuple[FloatArray, FloatArray] | None = None  # (world_from_box (4, 4), half extents (3,)) for boxes
+
+
+def obb_overlap(
+    c1: FloatArray, r1: FloatArray, h1: FloatArray, c2: FloatArray, r2: FloatArray, h2: FloatArray
+) -> FloatArray:
+    """Exact separating-axis test of oriented boxes, broadcast over leading axes: centres (..., 3), rotations
+    (..., 3, 3) (columns = box axes), half extents (..., 3). Returns (...,) bool: True where the boxes overlap."""
+    rot = np.einsum("...ji,...jk->...ik", r1, r2)  # r1^T r2
+    t = np.einsum("...ji,...j->...i", r1, c2 - c1)  # in box 1's frame
+    abs_rot = np.abs(rot) + 1e-12
+    sep = np.zeros(np.broadcast_shapes(t.shape[:-1], h2.shape[:-1], h1.shape[:-1]), dtype=bool)
+    for i in range(3):  # box 1 axes
+        ra = h1[..., i]
+        rb = np.einsum("...j,...j->...", h2, abs_rot[..., i, :])
+        sep |= np.abs(t[..., i]) > ra + rb
+    for j in range(3):  # box 2 axes
+        ra = np.einsum("...i,...i->...", h1, abs_rot[..., :, j])
+        rb = h2[..., j]
+        sep |= np.abs(np.einsum("...i,...i->...", t, rot[..., :, j])) > ra + rb
+    for i in range(3):  # cross products
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            ra = h1[..., i1] * abs_rot[..., i2, j] + h1[..., i2] * abs_rot[..., i1, j]
+            rb = h2[..., j1] * abs_rot[..., i, j2] + h2[..., j2] * abs_rot[..., i, j1]
+            dist = np.abs(t[..., i2] * rot[..., i1, j] - t[..., i1] * rot[..., i2, j])
+            sep |= dist > ra + rb
+    return ~sep
 
 
 def bounding_radius(kind: str, size: Any) -> float:
@@ -157,6 +186,7 @@ class CollisionWorld:
         pose = np.asarray(world_from_box, dtype=np.float64)
         half = np.abs(pose[:3, :3]) @ (ext / 2.0)
         self._add(name, category, geom, pose, pose[:3, 3] - half, pose[:3, 3] + half)
+        self.elements[name].box = (pose.copy(), ext / 2.0)
 
     def add_mesh(self, name: str, mesh: trimesh.Trimesh, world_from_mesh: ArrayLike, category: str = "object") -> None:
         """Add a triangle mesh (metres) as a BVH model; meshes are shared between instances of one template."""
@@ -325,6 +355,46 @@ class CollisionWorld:
         return self._held[0] if self._held else ""
 
     # -- queries ------------------------------------------------------------------------------------------------
+    def tool_box_hits(self, world_from_tcp: FloatArray, opening_m: FloatArray, category: str = "cell") -> FloatArray:
+        """(N,) bool: where a box of the tool, at poses (N, 4, 4) and openings (N,), overlaps a box element of
+        `category` (exact box-box test in numpy; the tool's non-box shapes are left to `check_tool`). A vectorised
+        early exit in front of the fcl checks."""
+        if self.tool is None:
+            raise InputError("tool_box_hits needs a tool: call set_tool first")
+        boxes = [
+            e.box
+            for e in self.elements.values()
+            if e.category == category and e.box is not None and e.name not in self._disabled
+        ]
+        poses = np.asarray(world_from_tcp, dtype=np.float64).reshape(-1, 4, 4)
+        n = len(poses)
+        hits = np.zeros(n, dtype=bool)
+        if not boxes:
+            return hits
+        bc = np.stack([b[0][:3, 3] for b in boxes])[None]
+        br = np.stack([b[0][:3, :3] for b in boxes])[None]
+        bh = np.stack([b[1] for b in boxes])[None]
+        openings = np.broadcast_to(np.asarray(opening_m, dtype=np.float64), (n,))
+        for s in self.tool.shapes:
+            if s.kind != "box":
+                continue
+            local = np.broadcast_to(np.asarray(s.tcp_from_shape, dtype=np.float64), (n, 4, 4)).copy()
+            if s.moves:
+                local[:, 0, 3] += s.moves * (openings / 2.0 + s.size[0] / 2.0)
+            world = poses @ local
+            hits |= np.any(
+                obb_overlap(
+                    world[:, None, :3, 3],
+                    world[:, None, :3, :3],
+                    np.asarray(s.size, dtype=np.float64)[None, None] / 2.0,
+                    bc,
+                    br,
+                    bh,
+                ),
+                axis=1,
+            )
+        return hits
+
     def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:
         """(K,) bool: which bounding spheres (centres (K, 3), radii (K,) m) touch some enabled element's AABB.
         A cheap numpy broad phase in front of fcl: shapes far from everything skip the fcl call entirely."""

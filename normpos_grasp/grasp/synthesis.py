@@ -25,7 +25,8 @@ class SynthesisOptions:
     the approached face, m. cup_diameter_m: suction cup diameter (faces smaller than this get no suction grasp), m.
     side_angles: approach directions around a cylinder / sphere. friction_coef: Coulomb mu of the antipodal test.
     antipodal_samples: surface samples for irregular parts. approach_m / retreat_m: straight-line lengths, m.
-    seed: RNG seed for surface sampling (results are reproducible).
+    seed: RNG seed for surface sampling (results are reproducible). finger_tip_m: how far the jaw tips reach past
+    the TCP along the approach, m (set from the tool, so grasps do not push the tips through the part's far side).
     """
 
     clearance_m: float = 0.01
@@ -33,10 +34,17 @@ class SynthesisOptions:
     cup_diameter_m: float = 0.03
     side_angles: int = 8
     friction_coef: float = 0.4
-    antipodal_samples: int = 160
+    antipodal_samples: int = 64
     approach_m: float = 0.08
     retreat_m: float = 0.1
     seed: int = 0
+    finger_tip_m: float = 0.0
+
+    def depth(self, extent: float) -> float:
+        """TCP depth below the approached face for a part `extent` deep along the approach, m: at most half the
+        part and `max_grip_depth_m`, and shallow enough that jaw tips reaching `finger_tip_m` past the TCP stop
+        2 mm short of the far face (never under 30 % of the part)."""
+        return float(max(min(extent / 2.0, self.max_grip_depth_m, extent - self.finger_tip_m - 0.002), 0.3 * extent))
 
 
 def tcp_frame(approach: FloatArray, closing: FloatArray, position: FloatArray) -> FloatArray:
@@ -128,7 +136,7 @@ def _box(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
             if i == j:
                 continue
             k = 3 - i - j
-            depth = min(ext[j] / 2.0, o.max_grip_depth_m)
+            depth = o.depth(float(ext[j]))
             for s in (1.0, -1.0):
                 approach = s * rot[:, j]
                 pos = c - approach * (ext[j] / 2.0 - depth)
@@ -194,7 +202,7 @@ def _cylinder(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
         ang = 2 * np.pi * k / o.side_angles
         approach = -(np.cos(ang) * u + np.sin(ang) * v)
         closing = np.cross(axis, approach)
-        depth = min(r, o.max_grip_depth_m)
+        depth = o.depth(2 * r)
         for h_idx, h in enumerate(heights):
             pos = c + h * axis - approach * (r - depth)
             out.append(
@@ -213,7 +221,7 @@ def _cylinder(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
         out.append(_g(f"cyl_caps_{k}", "parallel", tcp_frame(approach, axis, pos), length + 2 * o.clearance_m, 0.7, o))
     for s in (1.0, -1.0):
         approach = s * axis
-        depth = min(length / 2.0, o.max_grip_depth_m)
+        depth = o.depth(length)
         for k in range(max(o.side_angles // 2, 1)):
             ang = np.pi * k / max(o.side_angles // 2, 1)
             closing = np.cos(ang) * u + np.sin(ang) * v
@@ -259,10 +267,10 @@ def _sphere(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
     c = (v.max(axis=0) + v.min(axis=0)) / 2.0
     r = float(np.linalg.norm(v - c, axis=1).max())
     out = []
-    for k, d in enumerate(_fibonacci(4 * o.side_angles)):
+    for k, d in enumerate(_fibonacci(2 * o.side_angles)):
         approach = -d
         u, w = _perpendicular(approach)
-        depth = min(r, o.max_grip_depth_m)
+        depth = o.depth(2 * r)
         for m, closing in enumerate((u, w)):
             out.append(
                 _g(
@@ -302,7 +310,7 @@ def _plate(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
                 )
             )
     for e_idx in (a_idx, b_idx):
-        depth = min(ext[e_idx] / 2.0, o.max_grip_depth_m)
+        depth = min(ext[e_idx] / 2.0, o.max_grip_depth_m)  # in-plane: the tips stay inside the plate outline
         for s in (1.0, -1.0):
             approach = s * rot[:, e_idx]
             pos = c - approach * (ext[e_idx] / 2.0 - depth)
@@ -329,6 +337,7 @@ def _antipodal(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
     origins = points - normals * 1e-4
     locs, ray_idx, tri_idx = mesh.ray.intersects_location(origins, -normals, multiple_hits=False)
     cone = np.arctan(o.friction_coef)
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
     out: list[GraspAnnotation] = []
     for loc, ri, ti in zip(locs, ray_idx, tri_idx, strict=False):
         p1, n1 = points[ri], normals[ri]
@@ -348,11 +357,14 @@ def _antipodal(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
         for k in range(4):
             ang = np.pi / 2 * k
             approach = np.cos(ang) * u + np.sin(ang) * w
+            # back the TCP off so the jaw tips stop 2 mm short of the part's far side along the approach
+            far = float(((verts - mid) @ approach).max())
+            tcp = mid - approach * max(0.0, o.finger_tip_m + 0.002 - far)
             out.append(
                 _g(
                     f"antipodal_{ri}_{k}",
                     "parallel",
-                    tcp_frame(approach, axis, mid),
+                    tcp_frame(approach, axis, tcp),
                     width + 2 * o.clearance_m,
                     quality,
                     o,

@@ -175,6 +175,15 @@ def evaluate_candidates(
     for j in np.flatnonzero(out_ws):
         if verdict[int(j)] is None:
             reject(int(j), "workspace", POSE_NAMES[int(np.argmax(np.any((pos[j] < lo) | (pos[j] > hi), axis=1)))])
+    # tool boxes against the static cell boxes at grasp, pre-grasp and entry: exact, vectorised
+    alive = np.array([v is None for v in verdict])
+    idx = np.flatnonzero(alive)
+    if len(idx):
+        for p_idx in (2, 1, 0):
+            hits = world.tool_box_hits(poses[idx, p_idx], openings[idx])
+            for j in idx[hits]:
+                if verdict[int(j)] is None:
+                    reject(int(j), "collision_cell", POSE_NAMES[p_idx])
     alive = np.array([v is None for v in verdict])
     idx = np.flatnonzero(alive)
     q_all = np.zeros((n, 5, 8, 6))
@@ -279,7 +288,13 @@ def _check_collisions(
     """Tool at pre-grasp and (backed-off) grasp, then the arm on each valid branch at all five poses; the target
     is held (attached, removed from the world) at lift and exit."""
     world.detach()
+    # the tool at the grasp pose itself against everything but the target; against the target backed off a little
+    # (suction cups and jaw pads touch it by design)
+    world.disable(target.name)
+    hit = world.check_tool(poses[2], c.opening_m)
     world.enable(target.name)
+    if hit is not None:
+        return Evaluation(c, False, hit.reason, "grasp", poses)
     a = poses[2][:3, 2]
     backed = poses[2].copy()
     backed[:3, 3] -= a * opts.contact_backoff_m

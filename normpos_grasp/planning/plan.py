@@ -13,7 +13,7 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -255,8 +255,11 @@ def plan_pick(
     timing["world"] = (time.perf_counter() - t_start) * 1e3
     t0 = time.perf_counter()
     candidates: list[GraspCandidate] = []
+    cand_opts = opts.candidates
+    if cell.tool.kind == "parallel" and cand_opts.synthesis.finger_tip_m == 0.0:
+        cand_opts = replace(cand_opts, synthesis=replace(cand_opts.synthesis, finger_tip_m=cell.tool.finger_depth_m))
     for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
-        candidates.extend(candidates_for_object(k, template, target.world_from_object, cell.tool.kind, opts.candidates))
+        candidates.extend(candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts))
     timing["candidates"] = (time.perf_counter() - t0) * 1e3
     home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
     return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
@@ -475,8 +478,12 @@ def _build_path(
     backoff = opts.evaluation.contact_backoff_m + opts.cartesian_step_m
     for q, p in zip(seg_pre[1:-1], tcp_pre[1:-1], strict=True):
         if np.linalg.norm(p - tcp_pre[-1]) <= backoff:
-            if world.check_arm(q) is not None:  # the tool touches the target by design at the end
-                raise _PathRejected("arm collision on the approach", "path_collision")
+            # the tool touches the target by design at the end: everything else is still checked
+            world.disable(target.name)
+            hit = world.check_config(q, opening)
+            world.enable(target.name)
+            if hit is not None or world.check_arm(q) is not None:
+                raise _PathRejected("collision at the end of the approach", "path_collision")
             continue
         if not free_empty(q):
             raise _PathRejected("collision on the approach", "path_collision")
