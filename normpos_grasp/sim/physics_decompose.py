@@ -217,25 +217,21 @@ def _clip(piece: _Piece, normal: FloatArray, offset: float) -> _Piece:
 def _piece_points(piece: _Piece, solid: FloatArray) -> FloatArray:
     """(K, 3) points whose hull is the piece's hull: the clipped surface vertices plus the corners where three
     cut planes meet inside the material (such corners lie on no surface triangle)."""
-    real = piece.tris[piece.real].reshape(-1, 3)
+    real = np.unique(piece.tris[piece.real].reshape(-1, 3), axis=0)
     planes = piece.planes
     if len(planes) < 3:
         return real
-    corners = []
-    for i in range(len(planes)):
-        for j in range(i + 1, len(planes)):
-            for k in range(j + 1, len(planes)):
-                mat = np.stack([planes[i][0], planes[j][0], planes[k][0]])
-                if abs(np.linalg.det(mat)) < 1e-9:
-                    continue
-                corners.append(np.linalg.solve(mat, np.array([planes[i][1], planes[j][1], planes[k][1]])))
-    if not corners:
-        return real
-    pts = np.array(corners)
+    idx = np.array(
+        [(i, j, k) for i in range(len(planes)) for j in range(i + 1, len(planes)) for k in range(j + 1, len(planes))]
+    )
     normals = np.stack([p[0] for p in planes])
     offsets = np.array([p[1] for p in planes])
-    in_cell = np.all(pts @ normals.T <= offsets + 1e-9, axis=1)
-    pts = pts[in_cell]
+    mats = normals[idx]  # (T, 3, 3)
+    ok = np.abs(np.linalg.det(mats)) > 1e-9
+    if not ok.any():
+        return real
+    pts = np.linalg.solve(mats[ok], offsets[idx[ok]][..., None])[..., 0]
+    pts = pts[np.all(pts @ normals.T <= offsets + 1e-9, axis=1)]
     if len(pts) == 0:
         return real
     inside = _winding_number(pts, solid) > 0.5
