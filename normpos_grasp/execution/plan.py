@@ -228,11 +228,16 @@ def execute_plan(
         driver.gripper_open()
         steps.append(StepRecord(parsed.names[0], "gripper_open", time.monotonic() - t0))
     grip: bool | None = None
+    stream_from = 0  # index of the waypoint the current trajectory stream starts at
     for k in range(1, len(parsed.q)):
         name = parsed.names[k]
         t0 = time.monotonic()
         if segments is not None:
-            seg_t, seg_q = segments[k - 1]
+            if name not in opts.close_at and name not in opts.open_at and k < len(parsed.q) - 1:
+                continue  # stream on through waypoints without a gripper action
+            seg_t = np.concatenate([segments[i][0][(1 if i > stream_from else 0) :] for i in range(stream_from, k)])
+            seg_q = np.concatenate([segments[i][1][(1 if i > stream_from else 0) :] for i in range(stream_from, k)])
+            stream_from = k
             st = driver.follow_trajectory(seg_t, seg_q) if len(seg_t) > 1 else driver.state()
             kind = "trajectory"
         else:

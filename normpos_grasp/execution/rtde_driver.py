@@ -25,7 +25,7 @@ from .safety import SafetyLimits
 log = logging.getLogger(__name__)
 
 DASHBOARD_PORT = 29999
-_BUSY_GRACE_S = 0.2  # s: a just-started async move counts as busy until the controller reports it
+_BUSY_GRACE_S = 0.3  # s: a just-started async move counts as busy until the joints move
 
 
 def _import_rtde() -> tuple[Any, Any, Any]:
@@ -65,6 +65,8 @@ class RtdeDriver(GuardedDriver):
         self._last_change = 0.0
         self._move_started = 0.0
         self._seen_running = False
+        self._still_since = -1.0
+        self._still_window = 0.02
         self._streaming = False
         self._link_lost = False
 
@@ -177,7 +179,8 @@ class RtdeDriver(GuardedDriver):
             raise self._latch(DriverFault(f"controller refused {what} (control script not ready or not running)"))
 
     def _backend_move_path(self, waypoints: FloatArray, speed: float, accel: float) -> None:
-        self._move_started, self._seen_running = time.monotonic(), False
+        self._move_started, self._seen_running, self._still_since = time.monotonic(), False, -1.0
+        self._still_window = 0.02 if len(waypoints) == 1 else 0.15
         if len(waypoints) == 1:
             self._sent(self._c.moveJ(waypoints[0].tolist(), speed, accel, True), "moveJ")
         else:
@@ -185,9 +188,8 @@ class RtdeDriver(GuardedDriver):
             self._sent(self._c.moveJ(path, True), "moveJ path")
 
     def _backend_move_linear(self, poses: FloatArray, speed: float, accel: float) -> None:
-        self._move_started, self._seen_running = time.monotonic(), False
-        tcp = np.linalg.inv(self.limits.flange_from_tcp)
-        _ = tcp
+        self._move_started, self._seen_running, self._still_since = time.monotonic(), False, -1.0
+        self._still_window = 0.02 if len(poses) == 1 else 0.15
         if len(poses) == 1:
             self._sent(self._c.moveL(pose_to_ur(poses[0]).tolist(), speed, accel, True), "moveL")
         else:
@@ -195,11 +197,20 @@ class RtdeDriver(GuardedDriver):
             self._sent(self._c.moveL(path, True), "moveL path")
 
     def _backend_busy(self) -> bool:
-        running = int(self._c.getAsyncOperationProgress()) >= 0
-        if running:
-            self._seen_running = True
+        # Judged from the receive interface only (joint speeds): calls into the control interface block, holding
+        # the GIL, while ur_rtde 1.6.5 reconnects it after a dropped link, and that reconnect loop must be ended
+        # quickly (see _backend_link_lost).
+        if self._r is None or not self._r.isConnected():
+            return False
+        now = time.monotonic()
+        if float(np.max(np.abs(np.asarray(self._r.getActualQd())))) > 1e-4:
+            self._seen_running, self._still_since = True, -1.0
             return True
-        return not self._seen_running and time.monotonic() - self._move_started < _BUSY_GRACE_S
+        if not self._seen_running:
+            return now - self._move_started < _BUSY_GRACE_S
+        if self._still_since < 0.0:
+            self._still_since = now
+        return now - self._still_since < self._still_window  # a path stops for an instant at each waypoint
 
     def _backend_servo_begin(self) -> None:
         self._sent(self._c.setWatchdog(1.0 / self.options.watchdog_s), "setWatchdog")
@@ -221,10 +232,10 @@ class RtdeDriver(GuardedDriver):
         """Re-upload the control script (disarms the stream watchdog) and wait until it runs."""
         self._c.reuploadScript()
         deadline = time.monotonic() + self.options.connect_timeout_s
-        while not self._c.isProgramRunning():
+        while not (self._c.isProgramRunning() and self._backend_state().program_running):
             if time.monotonic() > deadline:
                 raise self._latch(DriverFault("control script did not restart within the connect timeout"))
-            time.sleep(0.01)
+            time.sleep(0.005)
 
     def _backend_stop(self, decel: float) -> None:
         if self._c is None or self._link_lost:

@@ -7,7 +7,7 @@ sends or clips: a target outside the limits is refused as a whole.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -26,7 +26,8 @@ class SafetyLimits:
 
     model: UR model name (its DH table gives the TCP for the workspace check).
     q_lower, q_upper: (6,) joint limits, rad. max_joint_speed: (6,) rad/s. max_joint_accel: (6,) rad/s^2.
-    workspace_min, workspace_max: (3,) corners of the allowed TCP box in the base frame, m.
+    workspace_min, workspace_max: (3,) corners of the allowed TCP box, m, in the base frame, or in the frame given
+    by box_from_base (4, 4) (world_from_base for a cell's world-frame box).
     flange_from_tcp: (4, 4) tool transform used for the workspace check (identity: the flange).
     max_tool_speed: m/s cap for Cartesian moves. max_tool_accel: m/s^2.
     """
@@ -41,6 +42,25 @@ class SafetyLimits:
     flange_from_tcp: FloatArray = field(default_factory=lambda: np.eye(4))
     max_tool_speed: float = 1.0
     max_tool_accel: float = 2.0
+    box_from_base: FloatArray = field(default_factory=lambda: np.eye(4))
+
+    @classmethod
+    def from_cell(cls, cell: Any, max_tool_accel: float = 2.0) -> SafetyLimits:
+        """Limits of a cell (normpos_grasp.cell.CellConfig): its robot's joint limits, the cell's joint speed and
+        acceleration caps, its TCP workspace box (world frame, checked through world_from_base) and its tool."""
+        motion = cell.motion
+        base = cls.for_model(cell.robot_model)
+        return replace(
+            base,
+            max_joint_speed=np.minimum(base.max_joint_speed, as_float_array(motion.joint_velocity, "v", (6,))),
+            max_joint_accel=as_float_array(motion.joint_acceleration, "joint_acceleration", (6,)),
+            workspace_min=as_float_array(motion.workspace_min, "workspace_min", (3,)),
+            workspace_max=as_float_array(motion.workspace_max, "workspace_max", (3,)),
+            flange_from_tcp=check_pose(cell.tool.flange_from_tcp, "cell.tool.flange_from_tcp"),
+            max_tool_speed=float(motion.tcp_speed_m_s),
+            max_tool_accel=max_tool_accel,
+            box_from_base=check_pose(cell.world_from_base, "cell.world_from_base"),
+        )
 
     @classmethod
     def for_model(
@@ -82,17 +102,10 @@ class SafetyLimits:
 
     def with_workspace(self, workspace_min: ArrayLike, workspace_max: ArrayLike) -> SafetyLimits:
         """A copy with another workspace box (base frame, m)."""
-        return SafetyLimits(
-            self.model,
-            self.q_lower,
-            self.q_upper,
-            self.max_joint_speed,
-            self.max_joint_accel,
-            as_float_array(workspace_min, "workspace_min", (3,)),
-            as_float_array(workspace_max, "workspace_max", (3,)),
-            self.flange_from_tcp,
-            self.max_tool_speed,
-            self.max_tool_accel,
+        return replace(
+            self,
+            workspace_min=as_float_array(workspace_min, "workspace_min", (3,)),
+            workspace_max=as_float_array(workspace_max, "workspace_max", (3,)),
         )
 
     # ------------------------------------------------------------------ checks
@@ -122,8 +135,9 @@ class SafetyLimits:
         return qs if np.ndim(q) == 2 else qs[0]
 
     def check_tcp_positions(self, points: ArrayLike, what: str = "target") -> None:
-        """Check TCP positions (N, 3) (base frame, m) against the workspace box."""
+        """Check TCP positions (N, 3) (base frame, m) against the workspace box (in its frame)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pts = pts @ self.box_from_base[:3, :3].T + self.box_from_base[:3, 3]
         outside = np.any((pts < self.workspace_min) | (pts > self.workspace_max), axis=1)
         if np.any(outside):
             i = int(np.argmax(outside))

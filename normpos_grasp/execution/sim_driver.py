@@ -219,7 +219,7 @@ class SimDriver(GuardedDriver):
         with self._lock:
             motion = self.arm.motion
             if isinstance(motion, ServoControl):
-                motion.q_target, motion.time = np.asarray(q, dtype=np.float64), period_s
+                motion.retarget(q, period_s)
             else:
                 self.arm.start(ServoControl(q, period_s))
 

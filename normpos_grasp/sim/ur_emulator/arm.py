@@ -94,6 +94,7 @@ class LinearMove(Motion):
                 "movel needs an IK solver: normpos_grasp.kinematics.Robot.load(model).ik was not importable; "
                 "use movej or install the kinematics module"
             )
+        arm.solve_tcp(tcp_goal)  # the goal must be reachable (analytic IK) before the move starts
         start = arm.base_from_tcp()
         self.p0 = start[:3, 3].copy()
         self.dp = tcp_goal[:3, 3] - self.p0
@@ -117,7 +118,14 @@ class LinearMove(Motion):
         self.t += dt
         frac = 1.0 if self.distance == 0.0 else trapezoid_s(self.t, self.distance, self.v, self.accel, self.total)
         frac = frac / self.distance if self.distance > 0.0 else 1.0
-        arm.set_joint_target(arm.solve_tcp(self.pose_at(frac)), dt)
+        target = self.pose_at(frac)
+        q = arm.track_tcp(target)
+        reached = arm.base_from_tcp(q)
+        if np.linalg.norm(reached[:3, 3] - target[:3, 3]) > 1e-4:
+            raise NoIKSolution(
+                "linear move cannot follow its line here (singularity or workspace edge)", reason="wrist_singularity"
+            )
+        arm.set_joint_target(q, dt)
         return self.t >= self.total
 
 
@@ -182,15 +190,31 @@ class SpeedControl(Motion):
 
 
 class ServoControl(Motion):
-    """servoj: track a streamed joint target, reaching it over `time` (s) as ur_rtde's servo loop expects."""
+    """servoj: each streamed joint target is reached linearly over its `time` (s), starting from where the arm is
+    when the target arrives; speeds saturate at the joint limits (as the controller's servo does) instead of
+    faulting, since a late client sample only means a longer step."""
 
     def __init__(self, q_target: FloatArray, time: float) -> None:
         self.q_target = np.array(q_target, dtype=np.float64)
         self.time = time
+        self.q_start: FloatArray | None = None
+        self.elapsed = 0.0
+
+    def retarget(self, q_target: FloatArray, time: float) -> None:
+        q_target = np.asarray(q_target, dtype=np.float64)
+        if not np.array_equal(q_target, self.q_target):
+            self.q_target = q_target.copy()
+            self.q_start = None
+        self.time = time
 
     def advance(self, arm: SimulatedArm, dt: float) -> bool:
-        frac = min(1.0, dt / max(self.time, dt))
-        arm.set_joint_target(arm.q_cmd + (self.q_target - arm.q_cmd) * frac, dt)
+        if self.q_start is None:
+            self.q_start, self.elapsed = arm.q_cmd.copy(), 0.0
+        self.elapsed += dt
+        frac = min(1.0, self.elapsed / max(self.time, dt))
+        q_next = self.q_start + (self.q_target - self.q_start) * frac
+        step = np.clip(q_next - arm.q_cmd, -arm.qd_limit * dt, arm.qd_limit * dt)
+        arm.set_joint_target(arm.q_cmd + step, dt)
         return False
 
 
@@ -225,6 +249,26 @@ class SimulatedArm:
     def tcp_pose_vector(self) -> FloatArray:
         """actual_TCP_pose: [x, y, z, rx, ry, rz] (m, rotation vector rad)."""
         return pose_to_ur(self.base_from_tcp())
+
+    def track_tcp(self, base_from_tcp: FloatArray, iterations: int = 3, damping: float = 1e-6) -> FloatArray:
+        """Joints near `q_cmd` reaching a nearby TCP pose: damped Gauss-Newton on the DH kinematics with a
+        finite-difference Jacobian (about 0.1 ms; used every period by linear moves, no branch switching)."""
+        q = self.q_cmd.copy()
+        eps = 1e-7
+        for _ in range(iterations):
+            batch = q[None] + np.vstack([np.zeros(6), np.eye(6) * eps])
+            poses = dh_forward_kinematics(self.params, batch) @ self.tcp_offset
+            err = np.concatenate(
+                [base_from_tcp[:3, 3] - poses[0, :3, 3], rotation_to_rotvec(base_from_tcp[:3, :3] @ poses[0, :3, :3].T)]
+            )
+            if float(np.linalg.norm(err)) < 1e-10:
+                break
+            jac = np.empty((6, 6))
+            for j in range(6):
+                jac[:3, j] = (poses[j + 1, :3, 3] - poses[0, :3, 3]) / eps
+                jac[3:, j] = rotation_to_rotvec(poses[j + 1, :3, :3] @ poses[0, :3, :3].T) / eps
+            q = q + np.linalg.solve(jac.T @ jac + damping * np.eye(6), jac.T @ err)
+        return q
 
     def solve_tcp(self, base_from_tcp: FloatArray) -> FloatArray:
         """Joints reaching a TCP pose, nearest to the current joints; raises NoIKSolution."""

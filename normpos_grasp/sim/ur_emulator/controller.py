@@ -409,7 +409,7 @@ class EmulatedController:
             servo_time = self.in_double[off + 8]
             motion = self.arm.motion
             if isinstance(motion, ServoControl):
-                motion.q_target, motion.time = q, servo_time
+                motion.retarget(q, servo_time)
             else:
                 self.arm.start(ServoControl(q, servo_time))
         elif cmd in (15, 16):
