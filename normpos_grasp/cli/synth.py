@@ -6,7 +6,7 @@ import argparse
 import time
 from typing import Any
 
-from normpos_grasp.sim.cameras import INTRINSICS, parse_resolution
+from normpos_grasp.sim.cameras import parse_resolution
 from normpos_grasp.sim.scene import CONTAINERS, SceneOptions
 from normpos_grasp.sim.sensor import SENSOR_PRESETS
 
@@ -68,6 +68,4 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     elapsed = time.perf_counter() - start
     print(f"wrote {total} frames ({args.scenes} scenes) to {split} in {elapsed:.1f} s")
-    if args.sensor not in INTRINSICS:  # pragma: no cover - presets and intrinsics share names
-        print(f"note: no intrinsics preset named {args.sensor}; used d435 intrinsics")
     return 0
