@@ -51,12 +51,12 @@ def run(args: argparse.Namespace) -> int:
     models = args.models or cell.templates_path
     if models is None:
         raise InputError("no template library: pass --models or set `templates` in the cell file")
-    library = load_library(models)
     frame = scene.load_frame(args.im_id)
     if cell.world_from_camera is not None:  # the cell's calibrated extrinsics win over the dataset's
         frame = replace(frame, camera=replace(frame.camera, world_from_camera=cell.world_from_camera))
     if frame.camera.world_from_camera is None:
         raise InputError("the frame's camera has no world_from_camera: give camera.world_from_camera in the cell file")
+    library = load_library(models)
     seg_args = argparse.Namespace(
         models_dir=models if (Path(models) / "models_info.json").is_file() else None, model=args.model
     )

@@ -12,6 +12,7 @@ Call `update()` after moving world objects (the planner does when it changes the
 from __future__ import annotations
 
 import logging
+import weakref
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -77,6 +78,21 @@ def _geometry(kind: str, size: Any) -> Any:
     if kind == "sphere":
         return fcl.Sphere(v[0])
     raise InputError(f"unknown primitive kind {kind!r}; expected box, capsule, cylinder or sphere")
+
+
+_BVH_CACHE: dict[int, tuple[weakref.ref[Any], fcl.BVHModel]] = {}
+
+
+def bvh_for(mesh: trimesh.Trimesh) -> fcl.BVHModel:
+    """The BVH of `mesh`, built once per mesh object for the life of the process (templates persist between
+    frames; the entry goes when the mesh is garbage-collected)."""
+    key = id(mesh)
+    hit = _BVH_CACHE.get(key)
+    if hit is not None and hit[0]() is mesh:
+        return hit[1]
+    model = bvh_from_mesh(mesh.vertices, mesh.faces)
+    _BVH_CACHE[key] = (weakref.ref(mesh, lambda _r, k=key: _BVH_CACHE.pop(k, None)), model)
+    return model
 
 
 def bvh_from_mesh(vertices: ArrayLike, faces: ArrayLike) -> fcl.BVHModel:
@@ -190,11 +206,7 @@ class CollisionWorld:
 
     def add_mesh(self, name: str, mesh: trimesh.Trimesh, world_from_mesh: ArrayLike, category: str = "object") -> None:
         """Add a triangle mesh (metres) as a BVH model; meshes are shared between instances of one template."""
-        key = id(mesh)
-        geom = self._mesh_cache.get(key)
-        if geom is None:
-            geom = bvh_from_mesh(mesh.vertices, mesh.faces)
-            self._mesh_cache[key] = geom
+        geom = bvh_for(mesh)
         pose = np.asarray(world_from_mesh, dtype=np.float64)
         verts = np.asarray(mesh.vertices, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]
         self._add(name, category, geom, pose, verts.min(axis=0), verts.max(axis=0))
@@ -335,11 +347,7 @@ class CollisionWorld:
 
     def attach(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> None:
         """Hold `mesh` rigidly in the tool (after a grasp); it then moves with the TCP in arm queries."""
-        key = id(mesh)
-        geom = self._mesh_cache.get(key)
-        if geom is None:
-            geom = bvh_from_mesh(mesh.vertices, mesh.faces)
-            self._mesh_cache[key] = geom
+        geom = bvh_for(mesh)
         self._held = (name, fcl.CollisionObject(geom, fcl.Transform()), np.asarray(tcp_from_object, dtype=np.float64))
         verts = np.asarray(mesh.vertices, dtype=np.float64)
         centre = (verts.max(axis=0) + verts.min(axis=0)) / 2.0

@@ -118,6 +118,26 @@ def five_poses(c: GraspCandidate, entry_z: float, lift_m: float, below_tcp_m: fl
     return np.stack([entry, pre, g, lift, exit_])
 
 
+def five_poses_batch(
+    g: FloatArray, approach_m: FloatArray, entry_z: float, lift_m: float, below_tcp_m: FloatArray, clearance_m: float
+) -> FloatArray:
+    """(N, 5, 4, 4) five poses for grasp poses g (N, 4, 4); vectorised `five_poses`."""
+    n = len(g)
+    out = np.repeat(g[:, None], 5, axis=1)
+    out[:, 1, :3, 3] -= g[:, :3, 2] * approach_m[:, None]
+    out[:, 3, 2, 3] += lift_m
+    if np.isfinite(entry_z):
+        out[:, 0, :3, 3] = out[:, 1, :3, 3]
+        out[:, 0, 2, 3] = np.maximum(out[:, 1, 2, 3], entry_z)
+        out[:, 4, :3, 3] = out[:, 3, :3, 3]
+        out[:, 4, 2, 3] = np.maximum(out[:, 3, 2, 3], entry_z + below_tcp_m + clearance_m)
+    else:
+        out[:, 0] = out[:, 1]
+        out[:, 4] = out[:, 3]
+    del n
+    return out
+
+
 def evaluate_candidates(
     candidates: list[GraspCandidate],
     targets: list[Target],
@@ -144,16 +164,18 @@ def evaluate_candidates(
     g = np.stack([c.world_from_tcp for c in candidates])
     approach = g[:, :3, 2]
     openings = np.array([c.opening_m for c in candidates])
-    below = np.zeros(n)
-    for i, c in enumerate(candidates):
-        t = targets[c.target]
-        verts = np.asarray(t.mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
-        below[i] = c.world_from_tcp[2, 3] - float(
-            (verts @ t.world_from_object[:3, :3].T)[:, 2].min() + t.world_from_object[2, 3]
-        )
-    poses = np.stack(
-        [five_poses(c, entry_z, lift_m, max(below[i], 0.0), entry_clearance_m) for i, c in enumerate(candidates)]
+    lowest = np.array(
+        [
+            float(
+                (np.asarray(t.mesh.vertices, dtype=np.float64) @ t.world_from_object[2, :3]).min()  # type: ignore[attr-defined]
+                + t.world_from_object[2, 3]
+            )
+            for t in targets
+        ]
     )
+    target_idx = np.array([c.target for c in candidates])
+    below = np.maximum(g[:, 2, 3] - lowest[target_idx], 0.0)
+    poses = five_poses_batch(g, np.array([c.approach_m for c in candidates]), entry_z, lift_m, below, entry_clearance_m)
 
     def reject(i: int, reason: str, pose: str = "") -> None:
         verdict[i] = Evaluation(candidates[i], False, reason, pose, poses[i])
@@ -195,6 +217,7 @@ def evaluate_candidates(
         q = q.reshape(len(idx), 5, 8, 6)
         exists = exists.reshape(len(idx), 5, 8)
         in_lim = in_lim.reshape(len(idx), 5, 8)
+        q_unwrapped = _unwrap_branches(q, arm)
         for k, j in enumerate(idx):
             has = exists[k].any(axis=1)
             if not has.all():
@@ -205,7 +228,7 @@ def evaluate_candidates(
             if not branch_ok.any():
                 reject(int(j), "ik", "branch_change")
                 continue
-            q_k = _unwrap_branch(q[k], arm)
+            q_k = q_unwrapped[k]
             lim_ok = np.all((q_k >= arm.lower - 1e-9) & (q_k <= arm.upper + 1e-9), axis=(0, 2)) & branch_ok
             if not lim_ok.any():
                 reject(int(j), "joint_limits", "grasp")
@@ -254,6 +277,20 @@ def evaluate_candidates(
     counts = Counter(v.reason for v in final if not v.feasible)
     ranked = tuple(sorted(feasible, key=lambda e: -e.score))
     return EvaluationResult(tuple(final), ranked, dict(counts))
+
+
+def _unwrap_branches(q: FloatArray, arm: ArmModel) -> FloatArray:
+    """(M, 5, 8, 6): `_unwrap_branch` for M candidates at once."""
+    two_pi = 2 * np.pi
+    ref = q[:, 2:3]
+    out = q + two_pi * np.round((ref - q) / two_pi)
+    for shift in (two_pi, -two_pi):
+        moved = out + shift
+        inside_now = np.all((out >= arm.lower) & (out <= arm.upper), axis=1)  # (M, 8, 6)
+        inside_moved = np.all((moved >= arm.lower) & (moved <= arm.upper), axis=1)
+        take = ~inside_now & inside_moved
+        out = np.where(take[:, None], moved, out)
+    return out
 
 
 def _unwrap_branch(q: FloatArray, arm: ArmModel) -> FloatArray:
