@@ -107,6 +107,17 @@ class SceneLayout:
     settle_time_s: float = 0.0
     settled: bool = True
 
+    def __post_init__(self) -> None:
+        poses = np.asarray(self.world_from_object, dtype=np.float64).reshape(-1, 4, 4)
+        if len(poses) != len(self.templates):
+            raise InputError(f"need one pose per template: {len(self.templates)} templates, {len(poses)} poses")
+        for i, (name, pose, size) in enumerate(self.static_boxes):
+            if np.shape(pose) != (4, 4) or np.shape(size) != (3,):
+                raise InputError(f"static box {i} ({name!r}) needs a (4, 4) pose and a (3,) size")
+        object.__setattr__(self, "templates", tuple(self.templates))
+        object.__setattr__(self, "world_from_object", poses)
+        object.__setattr__(self, "static_boxes", tuple(self.static_boxes))
+
     @property
     def part_names(self) -> list[str]:
         return [t.name for t in self.templates]
