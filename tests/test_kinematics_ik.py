@@ -226,3 +226,20 @@ def test_pinocchio_model_from_chain_matches_dh() -> None:
     model = build_pinocchio_model(params, chain)
     assert [model.names[i] for i in range(1, 7)][0] == "shoulder_pan_joint"
     assert model.upperPositionLimit[2] == pytest.approx(math.pi)
+
+
+@pytest.mark.parametrize("name", ROBOT_NAMES)
+def test_round_trip_on_singular_and_boundary_configurations(name: str) -> None:
+    """Joint values at 0, +-pi/2, +-pi and tiny angles put the arm at (double) singularities: stretched elbow,
+    aligned wrist, wrist centre on the shoulder plane; every such pose must still be solved to 1e-9."""
+    robot = ROBOTS[name]
+    rng = np.random.default_rng(13)
+    special = np.array([0.0, math.pi / 2, -math.pi / 2, math.pi, -math.pi, 1e-9, 1e-7, 1e-6, 0.25])
+    for _ in range(150):
+        q = rng.uniform(-math.pi, math.pi, 6)
+        mask = rng.random(6) < 0.5
+        q[mask] = rng.choice(special, int(mask.sum()))
+        target = robot.fk(q)
+        sols = robot.ik(target, q, IKOptions(all_branches=False))
+        assert sols.shape[0] >= 1, q
+        assert np.abs(robot.fk_batch(sols) - target).max() <= 1e-9, q

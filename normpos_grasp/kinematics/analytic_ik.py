@@ -16,9 +16,9 @@ import numpy as np
 from normpos_grasp.kinematics.ur_params import URParams
 from normpos_grasp.typing import BoolArray, FloatArray
 
-SINGULAR_SIN = 1e-10
+SINGULAR_SIN = 1e-6  # below this |sin q5| the q6 from atan2 is noise (c5 carries ~1e-14 round-off)
 # Slack on the acos arguments so poses exactly on a workspace boundary are not lost to round-off.
-_ACOS_SLACK = 1e-10
+ACOS_SLACK = 1e-8
 _TWO_PI = 2.0 * math.pi
 
 # Branch signs per solution index: (shoulder, wrist, elbow), +1 or -1.
@@ -30,7 +30,7 @@ def dh_lengths(params: URParams) -> tuple[float, float, float, float, float, flo
     return (params.d[0], params.a[1], params.a[2], params.d[3], params.d[4], params.d[5])
 
 
-def _acos(x: float, slack: float = _ACOS_SLACK) -> float | None:
+def _acos(x: float, slack: float = ACOS_SLACK) -> float | None:
     if x > 1.0 + slack or x < -1.0 - slack:
         return None
     return math.acos(min(1.0, max(-1.0, x)))
@@ -40,7 +40,7 @@ def ik_single(
     lengths: tuple[float, float, float, float, float, float],
     pose: list[list[float]],
     q6_default: float = 0.0,
-    slack: float = _ACOS_SLACK,
+    slack: float = ACOS_SLACK,
 ) -> tuple[list[tuple[float, ...] | None], str]:
     """The 8 closed-form solutions of one base_from_flange pose (nested lists, 4x4), scalar math.
 
@@ -125,13 +125,13 @@ def ik_batch(
         p05x = px - d6 * ax
         p05y = py - d6 * ay
         ratio = d4 / np.hypot(p05x, p05y)  # (N, 1)
-        ok1 = ratio <= 1.0 + _ACOS_SLACK
+        ok1 = ratio <= 1.0 + ACOS_SLACK
         phi = np.arccos(np.minimum(ratio, 1.0))
         t1 = np.arctan2(p05x, -p05y) + np.concatenate([phi, -phi], axis=1)  # (N, 2)
         t1 = t1 - _TWO_PI * np.round(t1 / _TWO_PI)
         c1, s1 = np.cos(t1), np.sin(t1)
         c5a = (px * s1 - py * c1 - d4) / d6  # (N, 2)
-        ok5 = np.abs(c5a) <= 1.0 + _ACOS_SLACK
+        ok5 = np.abs(c5a) <= 1.0 + ACOS_SLACK
         c5h = np.clip(c5a, -1.0, 1.0)
         t5a = np.arccos(c5h)
         s5a = np.sqrt(1.0 - c5h * c5h)  # sin of +t5a (>= 0); the other wrist branch has -s5a
@@ -157,7 +157,7 @@ def ik_batch(
         p13x = d5 * (s6 * n_c + c6 * o_c) - d6 * a_c + px[:, :, None] * c1e + py[:, :, None] * s1e
         p13y = (pz - d1 - d6 * az)[:, :, None] + d5 * (oz[:, :, None] * c6 + nz[:, :, None] * s6)
         c3a = (p13x * p13x + p13y * p13y - (a2 * a2 + a3 * a3)) / (2.0 * a2 * a3)  # (N, 2, 2)
-        ok3 = np.abs(c3a) <= 1.0 + _ACOS_SLACK
+        ok3 = np.abs(c3a) <= 1.0 + ACOS_SLACK
         c3h = np.clip(c3a, -1.0, 1.0)
         t3a = np.arccos(c3h)
         t3 = np.stack([t3a, -t3a], axis=3)  # (N, 2, 2, 2)

@@ -20,7 +20,7 @@ import numpy as np
 import pinocchio as pin
 
 from normpos_grasp.errors import InputError, NoIKSolution, RobotModelError
-from normpos_grasp.kinematics.analytic_ik import dh_lengths, ik_batch, ik_single
+from normpos_grasp.kinematics.analytic_ik import ACOS_SLACK, dh_lengths, ik_batch, ik_single
 from normpos_grasp.kinematics.dh import DHCalibration, DHChain
 from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.mjcf import arm_mjcf
@@ -51,7 +51,7 @@ class IKOptions:
     """
 
     wrist_singularity_tol: float = 1e-3
-    newton_iterations: int = 12
+    newton_iterations: int = 30
     newton_tol: float = 1e-12
     dedupe_tol: float = 1e-9
     all_branches: bool = True
@@ -325,7 +325,7 @@ class Robot:
     ) -> tuple[FloatArray, str]:
         """Distinct principal solutions (k, 6) in (-pi, pi]. Refined by Newton steps on the calibrated chain,
         or on the nominal one near a singularity, where acos/atan2 lose digits (errors up to ~1e-8)."""
-        slack = _CALIBRATED_SLACK if self.calibrated else 1e-10
+        slack = _CALIBRATED_SLACK if self.calibrated else ACOS_SLACK
         sols, reason = ik_single(self._lengths, pose.tolist(), q6_default, slack)
         found = [s for s in sols if s is not None]
         if self.calibrated and near is not None:
@@ -350,8 +350,14 @@ class Robot:
             if not any(polish):
                 return q, ""  # regular pose: the 8 branches are distinct, no polishing or dedupe needed
             flags = np.array(polish)
-            q[flags] = self._refine(q[flags], pose, options)[0]
+            refined, ok = self._refine(q[flags], pose, options)
+            q[flags] = refined
+            keep = np.ones(len(q), dtype=bool)
+            keep[np.flatnonzero(flags)[~ok]] = False  # clamped acos seeds of a pose just out of reach
+            q = q[keep]
             q = q - _TWO_PI * np.round(q / _TWO_PI)
+            if len(q) == 0:
+                return q, "out_of_reach"
         if len(q) > 1:
             close = np.abs(q[:, None, :] - q[None, :, :]).max(axis=2) <= options.dedupe_tol
             close[np.tril_indices(len(q))] = False
