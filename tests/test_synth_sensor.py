@@ -115,3 +115,24 @@ def test_presets_and_validation() -> None:
         sensor_preset("kinect9")
     with pytest.raises(InputError, match="baseline"):
         sensor_preset("ideal", disparity_noise_px=0.1)
+
+
+def test_material_dropout_hits_only_that_material() -> None:
+    lib = part_library_by_name()
+    plate, box = lib["plate"], lib["box"]  # aluminium and ABS
+    poses = np.stack([make_pose(translation=[-0.05, 0, 0.004]), make_pose(translation=[0.05, 0, 0.015])])
+    layout = SceneLayout((plate, box), poses, PLANE.static_boxes)
+    cam = camera_intrinsics("d435", (640, 480)).with_extrinsics(camera_pose([0, 0, 0], 0.4, 0.0, 0.0))
+    ideal = render(layout, cam)
+    assert ideal.part_materials == ("aluminium", "abs")
+    clean = dict(dropout_prob=0.0, edge_hole_prob=0.0, grazing_deg=90.0, shadows=False)
+    model = sensor_preset("d435", material_dropout=(("aluminium", 0.3),), **clean)
+    lost_plate, lost_box = [], []
+    for seed in range(4):
+        _, depth = model.apply(ideal, cam, np.random.default_rng(seed))
+        lost_plate.append(float((depth[ideal.masks_visible[0]] == 0).mean()))
+        lost_box.append(float((depth[ideal.masks_visible[1]] == 0).mean()))
+    assert np.mean(lost_plate) == pytest.approx(0.3, abs=0.1)
+    assert max(lost_box) == 0.0
+    _, depth = sensor_preset("d435", material_dropout=(), **clean).apply(ideal, cam, np.random.default_rng(0))
+    assert (depth[ideal.masks_visible[0]] > 0).all()

@@ -43,6 +43,7 @@ class Rendering:
     instance_ids: (H, W) int32, 0 for background and static geometry, k + 1 for part k.
     masks: (N, H, W) bool full (amodal) silhouettes; masks_visible: (N, H, W) bool visible pixels.
     backend: 'mujoco' or 'raycast' (which renderer produced it).
+    part_materials: material of each part (Template.material), for material-dependent sensor effects.
     """
 
     rgb: UInt8Array
@@ -51,6 +52,7 @@ class Rendering:
     masks: BoolArray
     masks_visible: BoolArray
     backend: str
+    part_materials: tuple[str, ...] = ()
 
     @property
     def visib_fractions(self) -> FloatArray:
@@ -139,6 +141,10 @@ def _full_masks(layout: SceneLayout, camera: Camera, depth: FloatArray, ids: np.
             full[vv[hit] + v0, uu[hit] + u0] = True
         masks[k] = full
     return masks
+
+
+def _materials(layout: SceneLayout) -> tuple[str, ...]:
+    return tuple(t.material for t in layout.templates)
 
 
 def _check_camera(camera: Camera) -> None:
@@ -310,7 +316,7 @@ class MujocoSceneRenderer:
         ids[depth == 0] = 0
         vis = _visible_masks(ids, self.layout.n_parts)
         full = _full_masks(self.layout, camera, depth, ids)
-        return Rendering(rgb, depth, ids, full, vis, "mujoco")
+        return Rendering(rgb, depth, ids, full, vis, "mujoco", _materials(self.layout))
 
 
 # -- ray-cast backend ------------------------------------------------------------------------
@@ -368,7 +374,7 @@ class RaycastSceneRenderer:
         rgb8 = np.clip(rgb.reshape(h, w, 3) * 255.0 + 0.5, 0, 255).astype(np.uint8)
         vis = _visible_masks(ids, self.layout.n_parts)
         full = _full_masks(self.layout, camera, depth, ids)
-        return Rendering(rgb8, depth, ids, full, vis, "raycast")
+        return Rendering(rgb8, depth, ids, full, vis, "raycast", _materials(self.layout))
 
 
 SceneRenderer = MujocoSceneRenderer | RaycastSceneRenderer

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from statistics import NormalDist
 
 import numpy as np
 
@@ -39,6 +40,8 @@ class SensorModel:
     rgb_gain: (min, max) global brightness factor; rgb_white_balance: per-channel gain jitter (sigma);
     rgb_gradient: peak relative brightness change of a random linear illumination gradient.
     rgb_blur_px: Gaussian sigma (pixels) of the lens blur applied to RGB before noise (0 = none).
+    material_dropout: (material, fraction) pairs: that share of the pixels of parts made of the material
+        loses its depth in blobs a few pixels wide (specular metal, dark or textureless surfaces).
     """
 
     name: str = "ideal"
@@ -64,6 +67,7 @@ class SensorModel:
     rgb_white_balance: float = 0.0
     rgb_gradient: float = 0.0
     rgb_blur_px: float = 0.0
+    material_dropout: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.disparity_noise_px > 0 and self.baseline_m <= 0:
@@ -72,6 +76,8 @@ class SensorModel:
             raise InputError(f"{self.name}: shadows need baseline_m > 0 (the second view's offset)")
         if not 0.0 <= self.correlated_fraction <= 1.0 or not 0.0 <= self.edge_hole_prob <= 1.0:
             raise InputError(f"{self.name}: correlated_fraction and edge_hole_prob must lie in [0, 1]")
+        if any(not 0.0 <= p <= 1.0 for _, p in self.material_dropout):
+            raise InputError(f"{self.name}: material_dropout fractions must lie in [0, 1], got {self.material_dropout}")
         if not 0.0 <= self.dropout_prob < 1.0:
             raise InputError(f"{self.name}: dropout_prob must lie in [0, 1), got {self.dropout_prob}")
         if self.min_range_m < 0 or self.max_range_m <= self.min_range_m:
@@ -114,6 +120,8 @@ class SensorModel:
             c1 = np.float32(np.cos(np.radians(min(self.grazing_deg + 10.0, 90.0))))
             p = np.clip((c0 - cos) / max(c0 - c1, np.float32(1e-6)), 0.0, 1.0)
             holes |= rng.random(truth.shape, dtype=np.float32) < p
+        if self.material_dropout and rendering.part_materials:
+            holes |= self._material_holes(rendering, rng)
         depth = truth.copy()
         sigma = self.depth_sigma_m(truth, camera.fx)
         if np.any(sigma > 0):
@@ -127,6 +135,23 @@ class SensorModel:
             holes |= rng.random(truth.shape, dtype=np.float32) < self.dropout_prob
         depth[holes] = 0.0
         return self._rgb(rendering.rgb, rng), depth
+
+    def _material_holes(self, rendering: Rendering, rng: np.random.Generator) -> BoolArray:
+        """Blobs (about 3 px) covering the configured share of each listed material's visible pixels."""
+        import cv2
+
+        fractions = dict(self.material_dropout)
+        lost = np.zeros(len(rendering.part_materials) + 1, dtype=np.float64)
+        for k, material in enumerate(rendering.part_materials):
+            lost[k + 1] = fractions.get(material, 0.0)
+        if not lost.any():
+            return np.zeros(rendering.depth_m.shape, dtype=bool)
+        blurred = cv2.GaussianBlur(_normal_samples(rendering.depth_m.shape, rng), (0, 0), 3.0)
+        field = np.asarray(blurred, dtype=np.float32) / np.float32(max(float(np.std(blurred)), 1e-12))
+        # threshold so that a unit-normal field exceeds it with probability p: z = Phi^-1(1 - p)
+        inv = NormalDist().inv_cdf
+        thresholds = np.array([inv(1.0 - p) if 0.0 < p < 1.0 else (np.inf if p <= 0.0 else -np.inf) for p in lost])
+        return np.asarray(field > thresholds[rendering.instance_ids], dtype=bool)
 
     def _noise_field(self, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
         """Unit-variance noise: white plus Gaussian-correlated parts mixed by `correlated_fraction`."""
@@ -273,6 +298,8 @@ _RGB_TYPICAL = {
     "rgb_gradient": 0.15,
     "rgb_blur_px": 0.6,
 }
+# specular metal loses stereo depth in blobs; passive stereo (ZED) also on textureless plastics
+_METAL_HOLES = (("aluminium", 0.08), ("steel", 0.15))
 
 #: Sensor presets; stereo disparity noise chosen to reproduce the RMS figures of sensor_noise.md at the
 #: presets' focal lengths (D435: 0.9 / 3.6 / 14 mm at 0.5 / 1 / 2 m; D455: 1.9 mm at 1 m; ZED 2: 2.8 mm at 1 m).
@@ -293,6 +320,7 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         edge_hole_prob=0.5,
         grazing_deg=78.0,
         dropout_prob=0.002,
+        material_dropout=_METAL_HOLES,
         **_RGB_TYPICAL,  # type: ignore[arg-type]
     ),
     "d455": SensorModel(
@@ -310,6 +338,7 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         edge_hole_prob=0.5,
         grazing_deg=78.0,
         dropout_prob=0.002,
+        material_dropout=_METAL_HOLES,
         **_RGB_TYPICAL,  # type: ignore[arg-type]
     ),
     "zed2": SensorModel(
@@ -327,6 +356,7 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         edge_hole_prob=0.7,
         grazing_deg=75.0,
         dropout_prob=0.005,
+        material_dropout=(("aluminium", 0.12), ("steel", 0.2), ("pom", 0.08), ("abs", 0.08)),
         **_RGB_TYPICAL,  # type: ignore[arg-type]
     ),
     "zivid": SensorModel(
@@ -344,6 +374,7 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         edge_hole_prob=0.8,
         grazing_deg=80.0,
         dropout_prob=0.0005,
+        material_dropout=(("aluminium", 0.02), ("steel", 0.04)),
         rgb_read_noise_dn=1.0,
         rgb_shot_noise=0.2,
         rgb_gain=(0.95, 1.05),
