@@ -91,7 +91,11 @@ def bvh_for(mesh: trimesh.Trimesh) -> fcl.BVHModel:
     if hit is not None and hit[0]() is mesh:
         return hit[1]
     model = bvh_from_mesh(mesh.vertices, mesh.faces)
-    _BVH_CACHE[key] = (weakref.ref(mesh, lambda _r, k=key: _BVH_CACHE.pop(k, None)), model)
+
+    def _forget(_ref: weakref.ref[Any], k: int = key) -> None:
+        _BVH_CACHE.pop(k, None)
+
+    _BVH_CACHE[key] = (weakref.ref(mesh, _forget), model)
     return model
 
 
@@ -189,7 +193,6 @@ class CollisionWorld:
     _tool_posed_by_config: bool = False
     _held: tuple[str, fcl.CollisionObject, FloatArray] | None = None
     _held_radius: float = 0.0
-    _mesh_cache: dict[int, fcl.BVHModel] = field(default_factory=dict)
     n_checks: int = 0
 
     # -- building -----------------------------------------------------------------------------------------------
