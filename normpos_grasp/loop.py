@@ -1,0 +1,263 @@
+"""The cell loop: capture -> measure -> fit -> plan -> execute -> check the pick, repeated.
+
+Frame sources: `SyntheticBinSource` (a physics-settled bin in the cell, rendered with a sensor model; picks are
+checked in MuJoCo against the TRUE poses and picked parts leave the bin) and `BopFrameSource` (frames of a BOP
+folder, one pick per frame, nothing to check). A live camera plugs in through the same `FrameSource` protocol.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from normpos_grasp.camera.model import RGBDFrame
+from normpos_grasp.cell.config import CellConfig
+from normpos_grasp.errors import InputError, RobotModelError
+from normpos_grasp.execution.driver import ArmDriver
+from normpos_grasp.execution.plan import ExecutionReport, execute_plan
+from normpos_grasp.execution.safety import SafetyLimits
+from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.pipeline import FrameResult, PipelineOptions, process_frame
+from normpos_grasp.planning.plan import PickPlan
+from normpos_grasp.templates.model import Template
+from normpos_grasp.typing import FloatArray
+
+log = logging.getLogger(__name__)
+
+
+class FrameSource(Protocol):
+    """Where frames come from and how a pick is checked."""
+
+    def capture(self) -> RGBDFrame:
+        """The next frame (camera with world_from_camera)."""
+        ...
+
+    def check_pick(self, plan: PickPlan) -> str:
+        """Outcome of the pick just executed: 'held', 'slip', 'drop', 'collision', 'missed' or 'not_checked'."""
+        ...
+
+    @property
+    def exhausted(self) -> bool:
+        """True when there is nothing left to pick or no frame left."""
+        ...
+
+
+@dataclass(frozen=True, eq=False)
+class PickRecord:
+    """One turn of the loop. status: 'picked', 'pick_failed', 'no_feasible_grasp' or 'dry_run'.
+
+    check: the source's verdict on the pick; timings_ms: per stage, milliseconds (perception, plan, execute, check).
+    """
+
+    index: int
+    result: FrameResult
+    status: str
+    check: str
+    plan_json: dict[str, Any] | None
+    execution: ExecutionReport | None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class SyntheticBinSource:
+    """A bin of `count` parts in `cell`, rendered through the cell's camera with a sensor model.
+
+    Picks are replayed in MuJoCo (`validate_physics`) against the true poses; a held part leaves the bin.
+    """
+
+    def __init__(
+        self,
+        cell: CellConfig,
+        count: int = 6,
+        seed: int = 0,
+        sensor: str = "d435",
+        library: list[Template] | None = None,
+        validate_physics: bool = True,
+    ) -> None:
+        from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene
+        from normpos_grasp.sim.sensor import sensor_preset
+
+        self.cell = cell
+        self.layout = compose_cell_scene(cell, count, seed, library)
+        self.camera = cell_camera(cell, sensor)
+        self.sensor = sensor_preset(sensor)
+        self.rng = np.random.default_rng(seed)
+        self.validate_physics = validate_physics
+        self.last: Any = None  # the last SyntheticFrame (truth for the frame)
+        self._frame_index = 0
+
+    @property
+    def exhausted(self) -> bool:
+        return self.layout.n_parts == 0
+
+    def capture(self) -> RGBDFrame:
+        from normpos_grasp.sim.dataset import render_frame
+        from normpos_grasp.sim.render import make_renderer
+
+        renderer = make_renderer(self.layout, self.camera.width, self.camera.height)
+        try:
+            self.last = render_frame(self.layout, renderer, self.camera, self.sensor, self.rng, im_id=self._frame_index)
+        finally:
+            renderer.close()
+        self._frame_index += 1
+        return self.last.frame
+
+    def true_part_of(self, plan: PickPlan) -> int:
+        """Index of the true part nearest to the plan's target (centre distance), -1 if none is within 5 cm."""
+        if plan.chosen is None or self.layout.n_parts == 0:
+            return -1
+        target = plan.targets[plan.chosen.candidate.target]
+        centre = _mesh_centre(target.mesh, target.world_from_object)
+        dists = [
+            np.linalg.norm(_mesh_centre(t.mesh, self.layout.world_from_object[i]) - centre)
+            for i, t in enumerate(self.layout.templates)
+        ]
+        best = int(np.argmin(dists))
+        return best if dists[best] < 0.05 else -1
+
+    def check_pick(self, plan: PickPlan) -> str:
+        from normpos_grasp.sim.cell_scene import remove_parts
+
+        part = self.true_part_of(plan)
+        if part < 0 or plan.chosen is None:
+            return "missed"
+        outcome = "not_checked"
+        if self.validate_physics:
+            from normpos_grasp.sim.physics import validate_grasp
+
+            neighbours = [
+                (t, self.layout.world_from_object[i]) for i, t in enumerate(self.layout.templates) if i != part
+            ]
+            result = validate_grasp(
+                self.layout.templates[part],
+                self.layout.world_from_object[part],
+                neighbours,
+                self.layout.static_boxes,
+                _physics_gripper(self.cell),
+                plan.chosen.candidate.world_from_tcp,
+                max(plan.chosen.candidate.opening_m, 1e-3),
+            )
+            outcome = result.outcome
+            if outcome != "held":
+                log.info("physics: pick of part %d %s (%s)", part, outcome, result.reason)
+        if outcome in ("held", "not_checked"):
+            self.layout = remove_parts(self.layout, [part])
+        return outcome
+
+
+class BopFrameSource:
+    """Frames of a BOP split or scene folder, in order; picks are not checked (no truth of the outcome)."""
+
+    def __init__(self, path: str | Path, world_from_camera: FloatArray | None = None) -> None:
+        from normpos_grasp.io.bop import BopScene, read_split
+
+        root = Path(path)
+        scenes = [BopScene(root)] if (root / "scene_camera.json").is_file() else read_split(root)
+        self._frames = [(scene, im_id) for scene in scenes for im_id in scene.frame_ids]
+        if not self._frames:
+            raise InputError(f"no BOP frames under {root}")
+        self._next = 0
+        self._world_from_camera = world_from_camera
+
+    @property
+    def exhausted(self) -> bool:
+        return self._next >= len(self._frames)
+
+    def capture(self) -> RGBDFrame:
+        if self.exhausted:
+            raise InputError("the BOP source has no frames left")
+        scene, im_id = self._frames[self._next]
+        self._next += 1
+        frame = scene.load_frame(im_id)
+        if frame.camera.world_from_camera is None and self._world_from_camera is not None:
+            frame = RGBDFrame(
+                frame.rgb,
+                frame.depth_m,
+                frame.camera.with_extrinsics(self._world_from_camera),
+                frame.stamp,
+                frame.scene_id,
+                frame.im_id,
+            )
+        return frame
+
+    def check_pick(self, plan: PickPlan) -> str:
+        return "not_checked"
+
+
+def run_cell_loop(
+    cell: CellConfig,
+    source: FrameSource,
+    segmenter: Segmenter,
+    library: Iterable[Template],
+    driver: ArmDriver | None,
+    *,
+    execute: bool = False,
+    max_picks: int = 20,
+    options: PipelineOptions | None = None,
+    on_pick: Callable[[PickRecord], None] | None = None,
+) -> list[PickRecord]:
+    """Run picks until the source is exhausted, nothing is feasible, or `max_picks` turns.
+
+    With `execute` False (the default) plans are checked against the safety limits and nothing is sent. Driver
+    faults propagate as typed `DriverFault`s with the arm stopped.
+    """
+    templates = list(library)
+    limits = SafetyLimits.from_cell(cell)
+    start_q = driver.state().q if (driver is not None and execute) else np.asarray(cell.home_q, dtype=np.float64)
+    records: list[PickRecord] = []
+    for index in range(max_picks):
+        if source.exhausted:
+            break
+        t0 = time.perf_counter()
+        frame = source.capture()
+        result = process_frame(frame, segmenter, templates, cell, options, start_q)
+        timings = {"capture": (time.perf_counter() - t0) * 1e3 - sum(result.timings_ms.values())}
+        timings.update(result.timings_ms)
+        plan = result.plan
+        if plan is None or plan.status != "ok":
+            record = PickRecord(
+                index, result, "no_feasible_grasp", "not_checked", plan.to_json() if plan else None, None, timings
+            )
+            records.append(record)
+            if on_pick is not None:
+                on_pick(record)
+            break
+        plan_json = plan.to_json()
+        t0 = time.perf_counter()
+        report = execute_plan(driver, plan_json, limits, dry_run=not execute)
+        timings["execute"] = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+        check = source.check_pick(plan)
+        timings["check"] = (time.perf_counter() - t0) * 1e3
+        status = "dry_run" if not execute else ("picked" if check in ("held", "not_checked") else "pick_failed")
+        if execute and driver is not None:
+            start_q = driver.state().q
+        elif plan.waypoints:
+            start_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
+        record = PickRecord(index, result, status, check, plan_json, report, timings)
+        records.append(record)
+        if on_pick is not None:
+            on_pick(record)
+    return records
+
+
+def _mesh_centre(mesh: Any, world_from_object: FloatArray) -> FloatArray:
+    centre = np.asarray(mesh.bounds, dtype=np.float64).mean(axis=0)
+    pose = np.asarray(world_from_object, dtype=np.float64)
+    return pose[:3, :3] @ centre + pose[:3, 3]
+
+
+def _physics_gripper(cell: CellConfig) -> Any:
+    """The physics model of the cell's gripper: the packaged gripper of that name, else one built from the tool."""
+    from normpos_grasp.kinematics.gripper import Gripper
+    from normpos_grasp.sim.physics import GripperSpec
+
+    try:
+        return Gripper.load(cell.tool.name)
+    except RobotModelError:
+        return GripperSpec(kind=cell.tool.kind, name=cell.tool.name, stroke_m=max(cell.tool.stroke_m, 1e-3))
