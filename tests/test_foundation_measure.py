@@ -314,3 +314,22 @@ def test_fill_region_must_match() -> None:
     assert np.allclose(out[region], 1.0)
     with pytest.raises(InputError, match="region"):
         fill_depth(depth, DepthFillOptions(edge_aware=True), region=region[1:])
+
+
+def test_normpos_json_and_ply_export(tmp_path: Path) -> None:
+    from normpos_grasp.measure.measure import save_normpos_json, save_normpos_ply
+
+    cam = Camera(K, 160, 120)
+    frame, _, inst = _box_scene(cam, make_pose(random_rotation(np.random.default_rng(8)), [0.0, 0.0, 0.6]))
+    (npos,) = measure_instances(frame, [inst])
+    save_normpos_json(tmp_path / "n.json", [npos])
+    (entry,) = json.loads((tmp_path / "n.json").read_text())
+    assert entry["instance_id"] == 3 and entry["frame"] == "camera" and entry["n_points"] == npos.n_points
+    axes = np.array(entry["obb"]["axes"])
+    assert np.allclose(axes, npos.obb.axes, atol=1e-6) and np.linalg.det(axes) == pytest.approx(1.0, abs=1e-5)
+    save_normpos_ply(tmp_path / "n.ply", npos)
+    cloud = read_ply(tmp_path / "n.ply")
+    assert np.array_equal(cloud.points, npos.points)
+    assert cloud.normals is not None and np.allclose(cloud.normals, npos.normals, atol=1e-6)
+    occ = occupancy(npos, 0.01)
+    assert occ.count > 0 and np.all(np.abs(occ.centers()[:, 2] - 0.6) < 0.1)
