@@ -49,9 +49,13 @@ class FitOptions:
             of the fine stage use exact KD-tree correspondences (the others a distance grid);
             scale_iterations: extra iterations that also fit the size factor.
         n_refine: distinct coarse hypotheses refined exactly.
+        fine_trim: share of correspondences kept (smallest residuals) in the fine ICP; the rest is trimmed.
+        n_flip_variants: turned copies of the best pose (24 axis assignments, coarse-fitted) also refined
+            and scored, so a view-induced wrong basin is caught by the ambiguity test (0 disables).
         ransac_iterations: sampled triples for the FPFH RANSAC (0 disables it).
         use_pca / use_control_points: hypothesis sources.
-        fit_scale: fit a size factor; scale_tolerance: its bound (0.05 = parts up to 5 % off CAD size).
+        fit_scale: fit a size factor (kept only when it lowers the RMSE below scale_rmse_gain x the rigid
+            fit's RMSE without lowering the score); scale_tolerance: its bound (0.05 = parts up to 5 % off CAD size).
         min_points: fewer measured points -> rejected ("too few points").
         min_consistency: share of points whose locally averaged residual lies within noise (a wrong
             template leaves coherent residuals).
@@ -61,6 +65,8 @@ class FitOptions:
             the best makes the fit ambiguous (rejected).
         depth_bias_m: a calibrated systematic depth offset of the sensor, metres (positive: the sensor reads
             too far); measured points are moved towards the camera by it along their rays. 0 by default.
+        class_ambiguity_ratio: with label '', a second template accepted with at least this share of the best
+            score makes the class ambiguous (rejected).
         seed: RNG seed for subsampling and RANSAC (results are deterministic).
     """
 
@@ -72,8 +78,11 @@ class FitOptions:
     coarse_iterations: int = 6
     icp_iterations: int = 12
     exact_iterations: int = 4
-    scale_iterations: int = 3
+    scale_iterations: int = 8
     n_refine: int = 3
+    n_flip_variants: int = 3
+    fine_trim: float = 0.95
+    scale_rmse_gain: float = 0.97
     ransac_iterations: int = 600
     use_pca: bool = True
     use_control_points: bool = True
@@ -86,7 +95,8 @@ class FitOptions:
     min_coverage: float = 0.5
     min_coverage_no_depth: float = 0.3
     max_free_space_violation: float = 0.08
-    ambiguity_ratio: float = 0.9
+    ambiguity_ratio: float = 0.95
+    class_ambiguity_ratio: float = 0.85
     ambiguity_add_s: float = 0.1
     depth_bias_m: float = 0.0
     seed: int = 0
@@ -206,7 +216,8 @@ def fit_best(
     best = fits[0]
     if len(fits) > 1 and best.accepted and not normpos.label:
         second = fits[1]
-        if second.accepted and second.score >= opts.ambiguity_ratio * best.score and not _same_shape(best, second):
+        close = second.score >= opts.class_ambiguity_ratio * best.score
+        if second.accepted and close and not _same_shape(best, second):
             best = replace(
                 best,
                 accepted=False,
@@ -337,10 +348,62 @@ def _fit_candidates(
         max_corr_start=0.25 * prep.diameter,
     )
     keep = _distinct(poses, frac, prep, opts.n_refine)
+    cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
+    out = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff)
+    if opts.n_flip_variants > 0 and out:
+        # the best pose turned about the template's principal axes (all 24 axis assignments): a view that
+        # hides the distinguishing features may have pulled every hypothesis into one wrong basin; the
+        # variants either win, tie (-> ambiguous, rejected) or lose clearly
+        best = out[0].object_from_frame
+        # turn about the measured surface's centre (object frame): the seen data stay roughly in place
+        centre = (best[:3, :3] @ meas.pts_fit.mean(axis=0) + best[:3, 3]) / out[0].scale
+        variants = []
+        for d in _SIGNED_PERMS[1:]:
+            rv = prep.axes @ d @ prep.axes.T
+            turn = np.eye(4)
+            turn[:3, :3] = rv
+            turn[:3, 3] = centre - rv @ centre
+            variants.append(turn @ best)
+        vp, vs, vf = icp(
+            prep,
+            np.array(variants),
+            np.full(len(variants), out[0].scale),
+            meas.pts_fit[ci],
+            meas.nrm_fit[ci],
+            meas.thr_fit[ci],
+            iterations=opts.coarse_iterations,
+            exact=False,
+            fit_scale=False,
+            scale_tolerance=opts.scale_tolerance,
+            max_corr_start=0.25 * prep.diameter,
+        )
+        pick = [i for i in _distinct(vp, vf, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
+        pick = pick[: opts.n_flip_variants]
+        if pick:
+            out += _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff)
+    out.sort(key=lambda c: c.score.score, reverse=True)
+    return out
+
+
+def _near(a: FloatArray, b: FloatArray, prep: PreparedTemplate) -> bool:
+    dt = np.linalg.norm(a[:3, 3] - b[:3, 3])
+    cosang = (np.trace(a[:3, :3] @ b[:3, :3].T) - 1) / 2
+    return bool(dt < 0.05 * prep.diameter and cosang > np.cos(np.deg2rad(8)))
+
+
+def _refine(
+    prep: PreparedTemplate,
+    poses: FloatArray,
+    scales: FloatArray,
+    meas: _Measured,
+    opts: FitOptions,
+    ctx: FitContext | None,
+    cff: FloatArray | None,
+) -> list[_Candidate]:
     poses, scales, _ = icp(
         prep,
-        poses[keep],
-        scales[keep],
+        poses,
+        scales,
         meas.pts_fit,
         meas.nrm_fit,
         meas.thr_fit,
@@ -349,41 +412,56 @@ def _fit_candidates(
         exact_last=opts.exact_iterations,
         fit_scale=False,
         scale_tolerance=opts.scale_tolerance,
-        max_corr_start=0.08 * prep.diameter,
+        max_corr_start=0.15 * prep.diameter,
+        trim=opts.fine_trim,
     )
-    if opts.fit_scale:
-        poses, scales, _ = icp(
-            prep,
-            poses,
-            scales,
-            meas.pts_fit,
-            meas.nrm_fit,
-            meas.thr_fit,
-            iterations=opts.scale_iterations,
-            exact=True,
-            fit_scale=True,
-            scale_tolerance=opts.scale_tolerance,
-            max_corr_start=3.0 * float(np.median(meas.thr_fit)),
-        )
-    cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
+    rigid = [_evaluate(prep, p, float(s), meas, ctx, cff) for p, s in zip(poses, scales, strict=True)]
+    if not opts.fit_scale:
+        return rigid
+    sp, ss, _ = icp(
+        prep,
+        poses,
+        scales,
+        meas.pts_fit,
+        meas.nrm_fit,
+        meas.thr_fit,
+        iterations=opts.scale_iterations,
+        exact=True,
+        fit_scale=True,
+        scale_tolerance=opts.scale_tolerance,
+        max_corr_start=3.0 * float(np.median(meas.thr_fit)),
+    )
     out = []
-    for pose, s in zip(poses, scales, strict=True):
-        sc = evaluate(
-            prep,
-            pose,
-            float(s),
-            meas.pts_score,
-            meas.nrm_score,
-            meas.thr_score,
-            meas.tree,
-            meas.viewpoint,
-            camera=ctx.camera if ctx is not None else None,
-            depth_m=ctx.depth_m if ctx is not None else None,
-            camera_from_frame=cff,
-        )
-        out.append(_Candidate(pose, float(s), sc))
-    out.sort(key=lambda c: c.score.score, reverse=True)
+    for r, p, s in zip(rigid, sp, ss, strict=True):
+        scaled = _evaluate(prep, p, float(s), meas, ctx, cff)
+        # a size factor is one more degree of freedom: keep it only when the data clearly ask for it
+        better = scaled.score.rmse_m < opts.scale_rmse_gain * r.score.rmse_m
+        out.append(scaled if better and scaled.score.score >= r.score.score else r)
     return out
+
+
+def _evaluate(
+    prep: PreparedTemplate,
+    pose: FloatArray,
+    scale: float,
+    meas: _Measured,
+    ctx: FitContext | None,
+    cff: FloatArray | None,
+) -> _Candidate:
+    sc = evaluate(
+        prep,
+        pose,
+        scale,
+        meas.pts_score,
+        meas.nrm_score,
+        meas.thr_score,
+        meas.tree,
+        meas.viewpoint,
+        camera=ctx.camera if ctx is not None else None,
+        depth_m=ctx.depth_m if ctx is not None else None,
+        camera_from_frame=cff,
+    )
+    return _Candidate(pose, scale, sc)
 
 
 def _pca_hypotheses(prep: PreparedTemplate, meas: _Measured) -> FloatArray:
@@ -460,14 +538,7 @@ def _distinct(poses: FloatArray, frac: FloatArray, prep: PreparedTemplate, n: in
     order = np.argsort(-frac)
     chosen: list[int] = []
     for i in order:
-        dup = False
-        for j in chosen:
-            dt = np.linalg.norm(poses[i, :3, 3] - poses[j, :3, 3])
-            cosang = (np.trace(poses[i, :3, :3] @ poses[j, :3, :3].T) - 1) / 2
-            if dt < 0.05 * prep.diameter and cosang > np.cos(np.deg2rad(8)):
-                dup = True
-                break
-        if not dup:
+        if not any(_near(poses[i], poses[j], prep) for j in chosen):
             chosen.append(int(i))
         if len(chosen) >= n:
             break

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from normpos_grasp.templates.prepared import PreparedTemplate
+from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins
 from normpos_grasp.typing import FloatArray
 
 NORMAL_COS = 0.35
@@ -22,7 +22,6 @@ def correspond(
     ny: FloatArray,
     *,
     exact: bool,
-    k: int = 4,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Closest normal-compatible model sample for object-frame points.
 
@@ -30,17 +29,28 @@ def correspond(
     Returns residual (P,) point-to-plane distance, dist (P,) point-to-point distance (inf when none),
     model normal (P, 3).
     """
+    bins = normal_bins(ny)
     if exact:
-        dist, idx = prep.tree.query(y, k=k)
-        nm = prep.normals[idx]  # (P, k, 3)
-        ok = np.einsum("pkd,pd->pk", nm, ny) > NORMAL_COS
-        first = np.argmax(ok, axis=1)
-        has = ok[np.arange(len(y)), first]
-        sel = idx[np.arange(len(y)), first]
-        d = np.where(has, dist[np.arange(len(y)), first], np.inf)
+        dist, idx = prep.tree.query(y)
+        ok = np.einsum("pd,pd->p", prep.normals[idx], ny) > NORMAL_COS
+        if not np.all(ok):
+            bad = np.flatnonzero(~ok)
+            d2, i2 = prep.nearest_binned(y[bad], bins[bad])
+            dist[bad] = d2
+            idx[bad] = i2
+            ok[bad] = np.einsum("pd,pd->p", prep.normals[i2], ny[bad]) > NORMAL_COS
+        sel = idx
+        d = np.where(ok, dist, np.inf)
     else:
         sel, inside = prep.grid_lookup(y)
-        has = (inside > 0) & (np.einsum("pd,pd->p", prep.normals[sel], ny) > NORMAL_COS)
+        ok = np.einsum("pd,pd->p", prep.normals[sel], ny) > NORMAL_COS
+        if not np.all(ok):
+            bad = np.flatnonzero(~ok)
+            s2, in2 = prep.grid_lookup_binned(y[bad], bins[bad])
+            sel[bad] = s2
+            inside[bad] = in2
+            ok[bad] = np.einsum("pd,pd->p", prep.normals[s2], ny[bad]) > NORMAL_COS
+        has = (inside > 0) & ok
         d = np.where(has, np.linalg.norm(y - prep.samples[sel], axis=-1), np.inf)
     n = prep.normals[sel]
     r = np.einsum("pd,pd->p", y - prep.samples[sel], n)
@@ -82,7 +92,7 @@ def icp(
     frac = np.zeros(h)
     dof = 7 if fit_scale else 6
     # a prior keeping the scale near 1 unless the data insist (equivalent to a few points at 1 diameter)
-    prior = 4.0 * prep.diameter**2
+    prior = 0.1 * prep.diameter**2
     for it in range(iterations):
         rot = poses[:, :3, :3]
         y = (np.einsum("hij,pj->hpi", rot, pts) + poses[:, None, :3, 3]) / scales[:, None, None]

@@ -24,7 +24,7 @@ _CACHE: weakref.WeakKeyDictionary[Template, PreparedTemplate] = weakref.WeakKeyD
 _LOCK = threading.Lock()
 
 N_SAMPLES = 4000
-GRID = 64
+GRID = 48
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,6 +49,8 @@ class PreparedTemplate:
     grid_origin: FloatArray
     grid_cell: float
     grid_index: npt.NDArray[np.int32]
+    grid_index_bins: npt.NDArray[np.int32]
+    bin_trees: tuple[tuple[cKDTree | None, IntArray], ...]
     sym: FloatArray
     desc_idx: IntArray
     desc: FloatArray
@@ -63,6 +65,35 @@ class PreparedTemplate:
         ijk = np.clip(ijk, 0, g - 1)
         idx = self.grid_index[ijk[..., 0], ijk[..., 1], ijk[..., 2]].astype(np.int64)
         return idx, inside.astype(np.float64)
+
+    def grid_lookup_binned(self, points: FloatArray, bins: IntArray) -> tuple[IntArray, FloatArray]:
+        """Like `grid_lookup` but the nearest sample whose normal falls in `bins` (P,) (see `normal_bins`)."""
+        ijk = np.floor((points - self.grid_origin) / self.grid_cell).astype(np.int64)
+        g = self.grid_index.shape[0]
+        inside = np.all((ijk >= 0) & (ijk < g), axis=-1)
+        ijk = np.clip(ijk, 0, g - 1)
+        idx = self.grid_index_bins[bins, ijk[..., 0], ijk[..., 1], ijk[..., 2]].astype(np.int64)
+        return idx, (inside & (idx >= 0)).astype(np.float64)
+
+    def nearest_binned(self, points: FloatArray, bins: IntArray) -> tuple[FloatArray, IntArray]:
+        """Exact nearest sample with a normal in the same bin: distances (P,) (inf if none), indices (P,)."""
+        dist = np.full(len(points), np.inf)
+        idx = np.zeros(len(points), dtype=np.int64)
+        for b, (tree, members) in enumerate(self.bin_trees):
+            sel = np.flatnonzero(bins == b)
+            if tree is None or len(sel) == 0:
+                continue
+            d, i = tree.query(points[sel])
+            dist[sel] = d
+            idx[sel] = members[i]
+        return dist, idx
+
+
+def normal_bins(normals: FloatArray) -> IntArray:
+    """(P,) bin 0..5 of each normal: dominant axis and sign (+x, -x, +y, -y, +z, -z)."""
+    ax = np.argmax(np.abs(normals), axis=-1)
+    sign = np.take_along_axis(normals, ax[..., None], axis=-1)[..., 0] < 0
+    return (2 * ax + sign).astype(np.int64)
 
 
 def prepare(template: Template) -> PreparedTemplate:
@@ -113,8 +144,21 @@ def _build(template: Template) -> PreparedTemplate:
     cell = float(np.max(hi - lo + 2 * pad) / GRID)
     origin = lo - pad
     centers = origin + (np.stack(np.meshgrid(*[np.arange(GRID)] * 3, indexing="ij"), -1) + 0.5) * cell
-    _, gidx = tree.query(centers.reshape(-1, 3))
+    flat = centers.reshape(-1, 3)
+    _, gidx = tree.query(flat)
     grid_index = np.asarray(gidx, dtype=np.int32).reshape(GRID, GRID, GRID)
+    sbins = normal_bins(normals)
+    bin_grids = np.full((6, GRID, GRID, GRID), -1, dtype=np.int32)
+    bin_trees: list[tuple[cKDTree | None, IntArray]] = []
+    for b in range(6):
+        members = np.flatnonzero(sbins == b)
+        if len(members) == 0:
+            bin_trees.append((None, members))
+            continue
+        btree = cKDTree(samples[members])
+        _, bi = btree.query(flat)
+        bin_grids[b] = members[np.asarray(bi)].reshape(GRID, GRID, GRID)
+        bin_trees.append((btree, members))
     voxel = diameter / 18.0
     keep = voxel_downsample(samples, voxel)
     desc = fpfh(samples[keep], normals[keep], voxel * 2.5)
@@ -130,6 +174,8 @@ def _build(template: Template) -> PreparedTemplate:
         grid_origin=origin,
         grid_cell=cell,
         grid_index=grid_index,
+        grid_index_bins=bin_grids,
+        bin_trees=tuple(bin_trees),
         sym=template.symmetry.transforms(continuous_steps=12),
         desc_idx=keep,
         desc=desc,
