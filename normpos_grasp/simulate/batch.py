@@ -21,12 +21,22 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.errors import InputError, MissingDependency
+from normpos_grasp.errors import InputError, MissingDependency, SimulationError
 from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, run_scene
 
 logger = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int], None]
+
+#: Environment of scene workers (local processes and Ray tasks): single-threaded numerical libraries, so that
+#: results do not depend on how many threads a worker could use.
+THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "VECLIB_MAXIMUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+}
 
 #: Columns of picks.csv (deterministic; timings are in timing.json).
 CSV_COLUMNS = (
@@ -72,7 +82,7 @@ def run_batch(
     ray_address: str | None = None,
     progress: ProgressFn | None = None,
 ) -> BatchResult:
-    """Simulate scenes 0 .. n_scenes-1 of `config`. workers: local processes (1 = in this process).
+    """Simulate scenes 0 .. n_scenes-1 of `config`. workers: local worker processes (spawned, single-threaded).
     ray_address: run scenes as Ray tasks on this cluster ('auto', 'local' for a new local cluster, or an
     address); needs the optional 'ray' package. progress(done, total) is called as scenes finish."""
     if n_scenes < 1:
@@ -83,20 +93,26 @@ def run_batch(
     results: list[SceneResult] = []
     if ray_address:
         results = _run_ray(tasks, ray_address, progress)
-    elif workers == 1:
-        for k, task in enumerate(tasks):
-            results.append(_scene_task(task))
-            if progress is not None:
-                progress(k + 1, n_scenes)
     else:
         import multiprocessing
 
-        ctx = multiprocessing.get_context("spawn")  # no inherited MuJoCo / EGL state in the workers
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            for k, res in enumerate(pool.map(_scene_task, tasks)):
-                results.append(res)
-                if progress is not None:
-                    progress(k + 1, n_scenes)
+        # Scenes always run in fresh spawned processes with single-threaded BLAS: multi-threaded reductions
+        # change the last bits of fits with the thread count, and no MuJoCo / EGL state is inherited.
+        ctx = multiprocessing.get_context("spawn")
+        saved = {k: os.environ.get(k) for k in THREAD_ENV}
+        os.environ.update(THREAD_ENV)
+        try:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+                for k, res in enumerate(pool.map(_scene_task, tasks)):
+                    results.append(res)
+                    if progress is not None:
+                        progress(k + 1, n_scenes)
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
     results.sort(key=lambda r: r.scene)
     return BatchResult(config, tuple(results))
 
@@ -108,13 +124,19 @@ def _run_ray(tasks: list[tuple[SimulationConfig, int]], address: str, progress: 
         raise MissingDependency("ray", "scale", "simulate --ray") from exc
     started = False
     if not ray.is_initialized():
-        if address == "local":
-            ray.init(include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        try:
+            if address == "local":
+                ray.init(include_dashboard=False, log_to_driver=False)
+            else:
+                ray.init(address=address, log_to_driver=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            raise SimulationError(
+                f"could not connect to the Ray cluster at {address!r}: {exc}; start one with `ray start --head` "
+                "or use --ray local"
+            ) from exc
         started = True
     try:
-        remote = ray.remote(_scene_task)
+        remote = ray.remote(_scene_task).options(runtime_env={"env_vars": dict(THREAD_ENV)})
         pending = {remote.remote(t): t[1] for t in tasks}
         out: list[SceneResult] = []
         while pending:
