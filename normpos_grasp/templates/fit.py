@@ -72,7 +72,7 @@ class FitOptions:
 
     n_fit_points: int = 200
     n_coarse_points: int = 60
-    n_score_points: int = 500
+    n_score_points: int = 400
     inlier_distance_m: float = 0.003
     noise_per_m2: float = 0.0036
     coarse_iterations: int = 6
@@ -80,7 +80,7 @@ class FitOptions:
     exact_iterations: int = 4
     scale_iterations: int = 8
     n_refine: int = 3
-    n_flip_variants: int = 3
+    n_flip_variants: int = 2
     fine_trim: float = 0.95
     scale_rmse_gain: float = 0.97
     ransac_iterations: int = 600
@@ -382,6 +382,8 @@ def _fit_candidates(
         if pick:
             out += _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff)
     out.sort(key=lambda c: c.score.score, reverse=True)
+    if opts.fit_scale and out:
+        out[0] = _with_scale(prep, out[0], meas, opts, ctx, cff)
     return out
 
 
@@ -415,13 +417,22 @@ def _refine(
         max_corr_start=0.15 * prep.diameter,
         trim=opts.fine_trim,
     )
-    rigid = [_evaluate(prep, p, float(s), meas, ctx, cff) for p, s in zip(poses, scales, strict=True)]
-    if not opts.fit_scale:
-        return rigid
+    return [_evaluate(prep, p, float(s), meas, ctx, cff) for p, s in zip(poses, scales, strict=True)]
+
+
+def _with_scale(
+    prep: PreparedTemplate,
+    cand: _Candidate,
+    meas: _Measured,
+    opts: FitOptions,
+    ctx: FitContext | None,
+    cff: FloatArray | None,
+) -> _Candidate:
+    """`cand` refitted with a size factor, kept only when the data clearly ask for one."""
     sp, ss, _ = icp(
         prep,
-        poses,
-        scales,
+        cand.object_from_frame[None],
+        np.array([cand.scale]),
         meas.pts_fit,
         meas.nrm_fit,
         meas.thr_fit,
@@ -431,13 +442,11 @@ def _refine(
         scale_tolerance=opts.scale_tolerance,
         max_corr_start=3.0 * float(np.median(meas.thr_fit)),
     )
-    out = []
-    for r, p, s in zip(rigid, sp, ss, strict=True):
-        scaled = _evaluate(prep, p, float(s), meas, ctx, cff)
-        # a size factor is one more degree of freedom: keep it only when the data clearly ask for it
-        better = scaled.score.rmse_m < opts.scale_rmse_gain * r.score.rmse_m
-        out.append(scaled if better and scaled.score.score >= r.score.score else r)
-    return out
+    if abs(float(ss[0]) - 1.0) < 0.005:
+        return cand
+    scaled = _evaluate(prep, sp[0], float(ss[0]), meas, ctx, cff)
+    better = scaled.score.rmse_m < opts.scale_rmse_gain * cand.score.rmse_m
+    return scaled if better and scaled.score.score >= cand.score.score else cand
 
 
 def _evaluate(
