@@ -189,6 +189,10 @@ class CollisionWorld:
     _pair_mask: Any = None
     _low_links: Any = None
     _tool_centres: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    _tool_local: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    _tool_local_inflated: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    _tool_moves: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _tool_finger_half: FloatArray = field(default_factory=lambda: np.zeros(0))
     _last_opening: float = 0.0
     _tool_posed_by_config: bool = False
     _held: tuple[str, fcl.CollisionObject, FloatArray] | None = None
@@ -341,11 +345,15 @@ class CollisionWorld:
             )
             pose = np.array(s.tcp_from_shape, dtype=np.float64)
             if s.moves:  # keep the inner jaw face where it is: grow outwards only
-                pose[0, 3] -= s.moves * clearance_m
+                pose[0, 3] += s.moves * clearance_m
             self._tool_objs_inflated.append(
                 (fcl.CollisionObject(_geometry(s.kind, grown), fcl.Transform()), pose, grown, s.moves)
             )
         self._tool_radii = np.array([bounding_radius(s.kind, s.size) for s in tool.shapes])
+        self._tool_local = np.stack([o[1] for o in self._tool_objs])
+        self._tool_local_inflated = np.stack([o[1] for o in self._tool_objs_inflated])
+        self._tool_moves = np.array([float(s.moves) for s in tool.shapes])
+        self._tool_finger_half = np.array([s.size[0] / 2.0 if s.moves else 0.0 for s in tool.shapes])
         self._tool_radii_inflated = self._tool_radii + np.sqrt(3) * clearance_m
 
     def attach(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> None:
@@ -446,26 +454,24 @@ class CollisionWorld:
     def _pose_tool(
         self, world_from_tcp: FloatArray, opening_m: float, inflated: bool = False, only_near: bool = False
     ) -> list[fcl.CollisionObject]:
-        """Pose the tool shapes; with `only_near`, return (and pose) only those whose bounding sphere touches
-        some element's box."""
+        """Pose all tool shapes (self-collision reads them); return those to query: with `only_near`, only shapes
+        whose bounding sphere touches some element's box."""
         objs = self._tool_objs_inflated if inflated else self._tool_objs
         radii = self._tool_radii_inflated if inflated else self._tool_radii
+        local = self._tool_local_inflated if inflated else self._tool_local
         if not inflated:
             self._last_opening = opening_m
-        poses = []
-        for _obj, tcp_from_shape, size, moves in objs:
-            pose = tcp_from_shape
-            if moves:
-                pose = tcp_from_shape.copy()
-                pose[0, 3] += moves * (opening_m / 2.0 + size[0] / 2.0)
-            poses.append(world_from_tcp @ pose)
-        centres = np.array([p[:3, 3] for p in poses])
+        if self._tool_moves.any():
+            local = local.copy()
+            local[:, 0, 3] += self._tool_moves * (opening_m / 2.0 + self._tool_finger_half)
+        poses = world_from_tcp @ local
+        centres = poses[:, :3, 3]
         if not inflated:
             self._tool_centres = centres
         keep = self.near(centres, radii) if only_near else np.ones(len(poses), dtype=bool)
         out = []
         for (obj, *_), pose, k in zip(objs, poses, keep, strict=True):
-            obj.setTransform(_tf(pose))  # all posed: self-collision reads them
+            obj.setTransform(_tf(pose))
             if k:
                 out.append(obj)
         return out

@@ -4,13 +4,13 @@ matched no template."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
 
 from normpos_grasp.geometry.transforms import rotation_from_rotvec
-from normpos_grasp.grasp.synthesis import SynthesisOptions, synthesize
+from normpos_grasp.grasp.synthesis import SynthesisOptions, _cylinder_axis, synthesize
 from normpos_grasp.measure.normpos import NormPosition
 from normpos_grasp.templates.model import GraspAnnotation, Template
 from normpos_grasp.typing import FloatArray
@@ -43,12 +43,15 @@ class GraspCandidate:
 class CandidateOptions:
     """free_axis_steps: rotations sampled about an annotation's free axis. tilt_steps: directions sampled on the
     tilt cone's rim (0: nominal only). synthesize: 'missing' (only when a template has no annotations), 'always'
-    or 'never'. synthesis: settings of automatic synthesis."""
+    or 'never'. synthesis: settings of automatic synthesis. snap_to_vertical: for parts with a continuous symmetry
+    (cylinders, spheres, annotated free axes) also offer each grasp rotated about the symmetry axis so that it
+    approaches as close to straight down as the symmetry allows (an equivalent grasp, usually the reachable one)."""
 
     free_axis_steps: int = 8
     tilt_steps: int = 4
     synthesize: str = "missing"
     synthesis: SynthesisOptions = SynthesisOptions()
+    snap_to_vertical: bool = True
 
 
 def expand_annotation(g: GraspAnnotation, options: CandidateOptions) -> list[tuple[str, FloatArray]]:
@@ -100,6 +103,62 @@ def object_grasps(
     return out
 
 
+def _symmetry_axes(template: Template) -> list[tuple[FloatArray, FloatArray]]:
+    """(axis (3,), point (3,)) of the template's continuous symmetry axes, object frame; for a 'cylinder' or
+    'sphere' without declared symmetry the axis is inferred from the mesh."""
+    axes = [
+        (np.asarray(a, dtype=np.float64) / np.linalg.norm(a), np.asarray(p, dtype=np.float64))
+        for a, p in template.symmetry.continuous
+    ]
+    if axes:
+        return axes
+    if template.shape == "cylinder":
+        axis, centre, _, _ = _cylinder_axis(template)
+        return [(axis, centre)]
+    if template.shape == "sphere":
+        centre = np.asarray(template.mesh.bounds, dtype=np.float64).mean(axis=0)
+        return [(np.eye(3)[i], centre) for i in range(3)]
+    return []
+
+
+def _about(axis: FloatArray, point: FloatArray, angle: float) -> FloatArray:
+    """(4, 4) rotation by `angle` about the line through `point` along unit `axis` (Rodrigues, no input checks:
+    this runs once per candidate)."""
+    x, y, z = axis
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    pose = np.eye(4)
+    pose[:3, :3] = np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+    pose[:3, 3] = point - pose[:3, :3] @ point
+    return pose
+
+
+def snap_down(world_from_tcp: FloatArray, axes_world: list[tuple[FloatArray, FloatArray]]) -> FloatArray | None:
+    """The grasp rotated about the object's symmetry axes (world frame) so that its approach points as far down
+    as the symmetry allows; None when it already does (within 3 degrees) or no rotation helps."""
+    pose = world_from_tcp.copy()
+    down = np.array([0.0, 0.0, -1.0])
+    if len(axes_world) >= 2:  # sphere-like: any rotation about the centre
+        a = pose[:3, 2]
+        angle = float(np.arccos(np.clip(a @ down, -1.0, 1.0)))
+        if angle < np.deg2rad(3):
+            return None
+        axis = np.cross(a, down)
+        if np.linalg.norm(axis) < 1e-9:
+            axis = np.array([1.0, 0.0, 0.0])
+        return _about(axis / np.linalg.norm(axis), axes_world[0][1], angle) @ pose
+    axis, point = axes_world[0]
+    a = pose[:3, 2]
+    a_perp = a - axis * (a @ axis)
+    t = down - axis * (down @ axis)
+    if np.linalg.norm(a_perp) < 1e-6 or np.linalg.norm(t) < 1e-6:
+        return None
+    u, t = a_perp / np.linalg.norm(a_perp), t / np.linalg.norm(t)
+    angle = float(np.arctan2(np.cross(u, t) @ axis, u @ t))
+    if abs(angle) < np.deg2rad(3):
+        return None
+    return _about(axis, point, angle) @ pose
+
+
 def candidates_for_object(
     target: int,
     template: Template,
@@ -109,8 +168,16 @@ def candidates_for_object(
 ) -> list[GraspCandidate]:
     """World grasp candidates for one object posed at `world_from_object` (4, 4), for a tool of `tool_kind`."""
     opts = options or CandidateOptions()
-    out = []
-    for g, source, gid, object_from_tcp in object_grasps(template, (tool_kind,), opts):
+    out: list[GraspCandidate] = []
+    axes_world = [
+        (world_from_object[:3, :3] @ a, world_from_object[:3, :3] @ p + world_from_object[:3, 3])
+        for a, p in _symmetry_axes(template)
+    ]
+    grasps = object_grasps(template, (tool_kind,), opts)
+    if not grasps:
+        return out
+    world_poses = world_from_object @ np.stack([pose for *_, pose in grasps])
+    for (g, source, gid, _), world_from_tcp in zip(grasps, world_poses, strict=True):
         quality = float(np.clip(g.priority if source == "synthesized" else 1.0, 0.0, 1.0))
         out.append(
             GraspCandidate(
@@ -119,7 +186,7 @@ def candidates_for_object(
                 grasp_id=gid,
                 source=source,
                 scheme=g.scheme,
-                world_from_tcp=world_from_object @ object_from_tcp,
+                world_from_tcp=world_from_tcp,
                 opening_m=float(g.opening_m),
                 approach_m=float(g.approach_m),
                 retreat_m=float(g.retreat_m),
@@ -127,6 +194,10 @@ def candidates_for_object(
                 priority=float(g.priority) if source == "annotated" else 0.0,
             )
         )
+        if axes_world and opts.snap_to_vertical:
+            snapped = snap_down(world_from_tcp, axes_world)
+            if snapped is not None:
+                out.append(replace(out[-1], grasp_id=f"{gid}@down", world_from_tcp=snapped))
     return out
 
 

@@ -44,8 +44,8 @@ class EvaluationOptions:
 
     max_approach_up: float = 0.2
     contact_backoff_m: float = 0.003
-    max_feasible: int = 8
-    max_feasible_per_target: int = 3
+    max_feasible: int = 5
+    max_feasible_per_target: int = 2
     clearance: bool = True
     w_quality: float = 1.0
     w_approach: float = 0.5

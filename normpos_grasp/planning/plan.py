@@ -59,7 +59,7 @@ class PlanOptions:
     pick_unmatched: bool = False
     place_drop_m: float = 0.005
     release_tolerance_m: float = 0.01
-    max_plan_attempts: int = 5
+    max_plan_attempts: int = 12
     candidates: CandidateOptions = CandidateOptions()
     evaluation: EvaluationOptions = EvaluationOptions()
     motion: MotionOptions = MotionOptions()
@@ -301,22 +301,54 @@ def plan_from_candidates(
     segments: list[FloatArray] = []
     tcp_segments: list[FloatArray | None] = []
     place_name = ""
-    for attempt, ev in enumerate(result.ranked):
-        if attempt >= opts.max_plan_attempts:
+    ranked = list(result.ranked)
+    attempts = 0
+    while chosen is None:
+        for ev in ranked:
+            if attempts >= opts.max_plan_attempts:
+                break
+            attempts += 1
+            try:
+                waypoints, segments, tcp_segments, place_name = _build_path(
+                    ev, targets[ev.candidate.target], world, arm, cell, home, opts
+                )
+            except PlanningError as exc:
+                reason = getattr(exc, "reason", "path")
+                logger.debug("grasp %s rejected while building the path: %s", ev.candidate.grasp_id, exc)
+                counts[reason] += 1
+                idx = next(i for i, e in enumerate(evaluations) if e is ev)
+                evaluations[idx] = Evaluation(ev.candidate, False, reason, "", ev.world_from_tcp, ev.q, ev.branch)
+                continue
+            chosen = ev
             break
-        try:
-            waypoints, segments, tcp_segments, place_name = _build_path(
-                ev, targets[ev.candidate.target], world, arm, cell, home, opts
-            )
-        except PlanningError as exc:
-            reason = getattr(exc, "reason", "path")
-            logger.debug("grasp %s rejected while building the path: %s", ev.candidate.grasp_id, exc)
-            counts[reason] += 1
-            idx = next(i for i, e in enumerate(evaluations) if e is ev)
-            evaluations[idx] = Evaluation(ev.candidate, False, reason, "", ev.world_from_tcp, ev.q, ev.branch)
-            continue
-        chosen = ev
-        break
+        pending = [i for i, e in enumerate(evaluations) if e.reason == "not_evaluated"]
+        if chosen is not None or attempts >= opts.max_plan_attempts or not pending:
+            break
+        # every grasp found so far failed while building its path: evaluate the candidates not reached yet
+        t1 = time.perf_counter()
+        more = evaluate_candidates(
+            [candidates[i] for i in pending],
+            targets,
+            world,
+            arm,
+            home,
+            cell.entry_z,
+            cell.lift_m,
+            cell.entry_clearance_m,
+            (cell.motion.workspace_min, cell.motion.workspace_max),
+            replace(opts.evaluation, max_feasible=0, max_feasible_per_target=0),
+        )
+        timing["evaluate"] += (time.perf_counter() - t1) * 1e3
+        counts["not_evaluated"] -= len(pending)
+        for i, ev in zip(pending, more.evaluations, strict=True):
+            evaluations[i] = ev
+            if not ev.feasible:
+                counts[ev.reason] += 1
+        ranked = list(more.ranked)
+        if not ranked:
+            break
+    if counts.get("not_evaluated", 1) == 0:
+        del counts["not_evaluated"]
     timing["path"] = (time.perf_counter() - t0) * 1e3
     trajectory = None
     if chosen is not None:
