@@ -39,7 +39,8 @@ BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction")
 class DemoOptions:
     """Demo settings. parts: parts dropped into the bin; max_picks: loop turns; sensor: depth-noise preset;
     segmenter: 'model' (bundled ONNX) or 'depth'; use_emulator: try the loopback UR controller first;
-    emulator_host: 127.0.0.x address for it."""
+    emulator_host: 127.0.0.x address for it; arrive_tol_rad: a move is complete when every joint is this close to
+    its goal, rad (the issue's 1e-3 rad execution tolerance)."""
 
     cell: str = "ur5e_bin_parallel"
     seed: int = 0
@@ -49,6 +50,7 @@ class DemoOptions:
     segmenter: str = "model"
     use_emulator: bool = True
     emulator_host: str = "127.0.0.1"
+    arrive_tol_rad: float = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,37 +90,45 @@ def choose_segmenter(kind: str) -> tuple[Segmenter, str]:
 
 @contextlib.contextmanager
 def arm_driver(cell: CellConfig, options: DemoOptions, log_path: Path) -> Iterator[tuple[ArmDriver, str, str]]:
-    """The emulator with the real ur_rtde client, else the simulated driver; yields (driver, kind, note)."""
+    """The emulator with the real ur_rtde client, else the simulated driver; yields (driver, kind, note).
+
+    Only a failure to START the emulator falls back to the simulated driver; faults while picking propagate.
+    """
+    from normpos_grasp.execution.driver import DriverOptions
     from normpos_grasp.execution.safety import SafetyLimits
     from normpos_grasp.execution.sim_driver import SimDriver
 
     limits = SafetyLimits.from_cell(cell)
+    driver_options = DriverOptions(arrive_tol_rad=options.arrive_tol_rad)
     if options.use_emulator:
-        try:
-            from normpos_grasp.execution.rtde_driver import RtdeDriver
-            from normpos_grasp.sim.ur_emulator.process import EmulatorProcess
+        with contextlib.ExitStack() as stack:
+            try:
+                from normpos_grasp.execution.rtde_driver import RtdeDriver
+                from normpos_grasp.sim.ur_emulator.process import EmulatorProcess
 
-            with EmulatorProcess(options.emulator_host, cell.robot_model, log_path=log_path, verbose=0) as emulator:
-                driver = RtdeDriver(emulator.host, limits)
-                driver.connect()
-                try:
-                    # start where the cell's program starts: at home
-                    driver.move_joints(np.asarray(cell.home_q)[None], 1.0, 2.0)
-                    yield driver, "emulator", f"loopback UR controller at {emulator.host} (real ur_rtde client)"
-                finally:
-                    driver.disconnect()
-            return
-        except (NormposError, OSError) as exc:
-            note = f"the loopback UR controller could not start ({exc}); using the simulated driver"
-            log.warning(note)
+                emulator = stack.enter_context(
+                    EmulatorProcess(options.emulator_host, cell.robot_model, log_path=log_path, verbose=0)
+                )
+                rtde = RtdeDriver(emulator.host, limits, options=driver_options)
+                rtde.connect()
+                stack.callback(rtde.disconnect)
+                # start where the cell's program starts: at home
+                rtde.move_joints(np.asarray(cell.home_q)[None], 1.0, 2.0)
+            except (NormposError, OSError) as exc:
+                note = f"the loopback UR controller could not start ({exc}); using the simulated driver"
+                log.warning(note)
+            else:
+                yield rtde, "emulator", f"loopback UR controller at {emulator.host} (real ur_rtde client)"
+                return
     else:
         note = "simulated driver (emulator disabled)"
-    sim = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64))
+    sim = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64), options=driver_options)
     sim.connect()
     try:
         yield sim, "simulated", note
     finally:
         sim.disconnect()
+        sim.shutdown()
 
 
 def run_demo(

@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -18,11 +18,11 @@ import numpy as np
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
-from normpos_grasp.errors import InputError, RobotModelError
+from normpos_grasp.errors import DriverFault, InputError, RobotModelError, SafetyViolation
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.execution.plan import ExecutionReport, execute_plan
 from normpos_grasp.execution.safety import SafetyLimits
-from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.perception.base import Instance, Segmenter
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, process_frame
 from normpos_grasp.planning.plan import PickPlan
 from normpos_grasp.templates.model import Template
@@ -50,9 +50,12 @@ class FrameSource(Protocol):
 
 @dataclass(frozen=True, eq=False)
 class PickRecord:
-    """One turn of the loop. status: 'picked', 'pick_failed', 'no_feasible_grasp' or 'dry_run'.
+    """One turn of the loop. status: 'picked', 'pick_failed', 'no_feasible_grasp', 'dry_run', 'driver_fault' or
+    'unsafe_plan' (the safety limits refused the plan; nothing was sent).
 
-    check: the source's verdict on the pick; timings_ms: per stage, milliseconds (perception, plan, execute, check).
+    check: the source's verdict on the pick; timings_ms: per stage, milliseconds (perception, plan, execute, check);
+    fault: the fault's type and message for 'driver_fault' (the arm was stopped and nothing further is sent until
+    the driver is resumed) and 'unsafe_plan'.
     """
 
     index: int
@@ -62,6 +65,7 @@ class PickRecord:
     plan_json: dict[str, Any] | None
     execution: ExecutionReport | None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    fault: str = ""
 
 
 class SyntheticBinSource:
@@ -151,14 +155,19 @@ class SyntheticBinSource:
 
 
 class BopFrameSource:
-    """Frames of a BOP split or scene folder, in order; picks are not checked (no truth of the outcome)."""
+    """Frames of a BOP split or scene folder, in order; picks are not checked (no truth of the outcome).
+
+    world_from_camera: the cell's calibrated extrinsics (4, 4); they replace the dataset's, as for a camera fixed in
+    the cell. None keeps the dataset's own `cam_R_w2c`/`cam_t_w2c` (a cell YAML with `camera: {from_scene: true}`).
+    """
 
     def __init__(self, path: str | Path, world_from_camera: FloatArray | None = None) -> None:
         from normpos_grasp.io.bop import BopScene, read_split
 
         root = Path(path)
-        scenes = [BopScene(root)] if (root / "scene_camera.json").is_file() else read_split(root)
-        self._frames = [(scene, im_id) for scene in scenes for im_id in scene.frame_ids]
+        self.root = root
+        self.scenes = [BopScene(root)] if (root / "scene_camera.json").is_file() else read_split(root)
+        self._frames = [(k, im_id) for k, scene in enumerate(self.scenes) for im_id in scene.frame_ids]
         if not self._frames:
             raise InputError(f"no BOP frames under {root}")
         self._next = 0
@@ -168,25 +177,60 @@ class BopFrameSource:
     def exhausted(self) -> bool:
         return self._next >= len(self._frames)
 
+    @property
+    def n_frames(self) -> int:
+        return len(self._frames)
+
     def capture(self) -> RGBDFrame:
         if self.exhausted:
             raise InputError("the BOP source has no frames left")
-        scene, im_id = self._frames[self._next]
+        k, im_id = self._frames[self._next]
         self._next += 1
-        frame = scene.load_frame(im_id)
-        if frame.camera.world_from_camera is None and self._world_from_camera is not None:
-            frame = RGBDFrame(
-                frame.rgb,
-                frame.depth_m,
-                frame.camera.with_extrinsics(self._world_from_camera),
-                frame.stamp,
-                frame.scene_id,
-                frame.im_id,
-            )
-        return frame
+        frame = self.scenes[k].load_frame(im_id)
+        camera = frame.camera
+        if self._world_from_camera is not None:
+            camera = camera.with_extrinsics(self._world_from_camera)
+        # scene_id carries the scene's position in this source, so the ground-truth segmenter finds its scene
+        return RGBDFrame(frame.rgb, frame.depth_m, camera, frame.stamp, k, frame.im_id)
 
     def check_pick(self, plan: PickPlan) -> str:
         return "not_checked"
+
+    def part_names(self) -> dict[str, str]:
+        """BOP label ('obj_000003') -> part name, from the `parts.json` that `normpos_grasp.sim` writes; {} if none."""
+        for folder in (self.root, self.root.parent, self.root.parent.parent):
+            info = folder / "parts.json"
+            if info.is_file():
+                import json
+
+                from normpos_grasp.perception.gt import label_for
+
+                try:
+                    parts = json.loads(info.read_text()).get("parts", {})
+                    return {label_for(int(obj_id)): str(p["name"]) for obj_id, p in parts.items()}
+                except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                    raise InputError(f"{info} is not a normpos_grasp parts.json: {exc}") from exc
+        return {}
+
+    def ground_truth_segmenter(self, relabel: dict[str, str] | None = None) -> Segmenter:
+        """A segmenter returning each frame's ground-truth visible masks (labels mapped through `relabel`)."""
+        return _BopGroundTruth(self.scenes, relabel or {})
+
+
+class _BopGroundTruth:
+    """GroundTruthSegmenter per scene of a BopFrameSource (frames carry the scene's index as scene_id)."""
+
+    def __init__(self, scenes: list[Any], relabel: dict[str, str]) -> None:
+        from normpos_grasp.perception.gt import GroundTruthSegmenter
+
+        self._segmenters = [GroundTruthSegmenter(scene) for scene in scenes]
+        self._relabel = relabel
+
+    def segment(self, frame: RGBDFrame) -> list[Instance]:
+        if not 0 <= frame.scene_id < len(self._segmenters):
+            raise InputError(f"frame of scene {frame.scene_id} does not come from this BOP source")
+        found = self._segmenters[frame.scene_id].segment(frame)
+        return [replace(inst, label=self._relabel.get(inst.label, inst.label)) for inst in found]
 
 
 def run_cell_loop(
@@ -200,49 +244,65 @@ def run_cell_loop(
     max_picks: int = 20,
     options: PipelineOptions | None = None,
     on_pick: Callable[[PickRecord], None] | None = None,
+    on_plan: Callable[[FrameResult], None] | None = None,
 ) -> list[PickRecord]:
-    """Run picks until the source is exhausted, nothing is feasible, or `max_picks` turns.
+    """Run picks until the source is exhausted, nothing is feasible, the driver faults, or `max_picks` turns.
 
-    With `execute` False (the default) plans are checked against the safety limits and nothing is sent. Driver
-    faults propagate as typed `DriverFault`s with the arm stopped.
+    With `execute` False (the default) plans are checked against the safety limits and nothing is sent; the next
+    plan then starts where the previous one ended. `on_plan` hears every frame's result before its plan is
+    executed (for live views); `on_pick` hears every record. The source checks every pick, also in a dry run (a
+    synthetic bin then replays it in physics and loses the part, so a dry run walks through the bin). A
+    `DriverFault` during execution ends the loop with a 'driver_fault' record (the driver has stopped the arm and
+    sends nothing further until it is resumed); a plan the safety limits refuse ends it with 'unsafe_plan'.
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
+    if execute and driver is None:
+        raise InputError("execute=True needs a connected driver")
     start_q = driver.state().q if (driver is not None and execute) else np.asarray(cell.home_q, dtype=np.float64)
     records: list[PickRecord] = []
+
+    def emit(record: PickRecord) -> None:
+        records.append(record)
+        if on_pick is not None:
+            on_pick(record)
+
     for index in range(max_picks):
         if source.exhausted:
             break
         t0 = time.perf_counter()
         frame = source.capture()
+        t_capture = (time.perf_counter() - t0) * 1e3
         result = process_frame(frame, segmenter, templates, cell, options, start_q)
-        timings = {"capture": (time.perf_counter() - t0) * 1e3 - sum(result.timings_ms.values())}
-        timings.update(result.timings_ms)
+        timings = {"capture": t_capture, **result.timings_ms}
+        if on_plan is not None:
+            on_plan(result)
         plan = result.plan
         if plan is None or plan.status != "ok":
-            record = PickRecord(
-                index, result, "no_feasible_grasp", "not_checked", plan.to_json() if plan else None, None, timings
-            )
-            records.append(record)
-            if on_pick is not None:
-                on_pick(record)
+            doc = plan.to_json() if plan is not None else None
+            emit(PickRecord(index, result, "no_feasible_grasp", "not_checked", doc, None, timings))
             break
         plan_json = plan.to_json()
         t0 = time.perf_counter()
-        report = execute_plan(driver, plan_json, limits, dry_run=not execute)
+        try:
+            report = execute_plan(driver, plan_json, limits, dry_run=not execute)
+        except (DriverFault, SafetyViolation) as exc:
+            timings["execute"] = (time.perf_counter() - t0) * 1e3
+            status = "driver_fault" if isinstance(exc, DriverFault) else "unsafe_plan"
+            log.error("pick %d: %s: %s", index + 1, type(exc).__name__, exc)
+            fault = f"{type(exc).__name__}: {exc}"
+            emit(PickRecord(index, result, status, "not_checked", plan_json, None, timings, fault))
+            break
         timings["execute"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        check = source.check_pick(plan)
+        check = source.check_pick(plan)  # synthetic bins replay the pick in physics, dry run or not
         timings["check"] = (time.perf_counter() - t0) * 1e3
         status = "dry_run" if not execute else ("picked" if check in ("held", "not_checked") else "pick_failed")
         if execute and driver is not None:
             start_q = driver.state().q
         elif plan.waypoints:
             start_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
-        record = PickRecord(index, result, status, check, plan_json, report, timings)
-        records.append(record)
-        if on_pick is not None:
-            on_pick(record)
+        emit(PickRecord(index, result, status, check, plan_json, report, timings))
     return records
 
 

@@ -117,6 +117,33 @@ class TwinScene:
                 scene.add_geometry(trimesh.PointCloud(pts, colors=rgba), node_name=name, geom_name=name)
         return scene
 
+    @classmethod
+    def from_glb(cls, path: str | Path) -> TwinScene:
+        """Read a GLB written by `export_glb` (or any glTF scene): meshes with their main colour and opacity, point
+        clouds with their colours, all placed in the world frame by the scene graph."""
+        source = Path(path)
+        try:
+            loaded: Any = trimesh.load(source, force="scene")
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f"cannot read the 3D scene {source}: {exc}") from exc
+        scene = cls()
+        for node in loaded.graph.nodes_geometry:
+            world_from_node, geom_name = loaded.graph[node]
+            geom = loaded.geometry[geom_name]
+            if isinstance(geom, trimesh.PointCloud):
+                pts = trimesh.transform_points(np.asarray(geom.vertices), world_from_node)
+                cols = np.asarray(geom.colors, dtype=np.float64)[:, :3] if len(geom.colors) else (200, 200, 200)
+                scene.add_points(node, pts, cols, max_points=max(len(pts), 1))
+            elif isinstance(geom, trimesh.Trimesh) and len(geom.faces):
+                visual: Any = geom.visual
+                colour_visual = visual.to_color() if hasattr(visual, "to_color") else visual
+                rgba = np.asarray(colour_visual.main_color, dtype=np.float64)
+                color = (int(rgba[0]), int(rgba[1]), int(rgba[2]))
+                scene.add_posed_mesh(node, geom, world_from_node, color, float(rgba[3]) / 255.0)
+        if not scene.meshes and not scene.clouds:
+            raise InputError(f"{source} holds no meshes or point clouds")
+        return scene
+
     def export_glb(self, path: str | Path) -> None:
         """Write the scene as binary glTF (GLB); written to a temporary file and renamed."""
         target = Path(path)

@@ -1,0 +1,291 @@
+"""`normpos-grasp run --cell CELL.yaml --source SOURCE --robot HOST [--execute] [--view]`: the cell loop.
+
+capture -> segment -> measure -> fit -> plan -> (execute) -> check the pick, repeated until the source is exhausted,
+nothing is feasible, the driver faults or --max-picks turns. Dry run by default: every plan is checked against the
+cell's safety limits and nothing is sent. SOURCE: a BOP scene or split folder, `synthetic[:N]` (a physics-settled
+bin of N parts in the cell), or `realsense` (optional pyrealsense2 extra). docs/loop.md.
+
+Exit codes: 0 at least one pick planned (and executed with --execute), 1 no feasible grasp in the first frame or a
+pick failed, 2 bad input, a driver fault or an unsafe plan.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SEGMENTERS = ("model", "depth", "gt")
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser(
+        "run",
+        help="the cell loop: capture, measure, fit, plan and (with --execute) pick, repeatedly",
+        description="Run the pick loop of a cell on a frame source. Dry run unless --execute: plans are checked "
+        "against the safety limits and nothing is sent to the robot.",
+    )
+    p.add_argument("--cell", required=True, help="cell YAML (docs/cells.md) or a packaged cell name")
+    p.add_argument(
+        "--source", required=True, help="BOP scene/split folder, 'synthetic[:N]' (N parts, default 6) or 'realsense'"
+    )
+    p.add_argument(
+        "--robot",
+        required=True,
+        help="UR controller address (127.0.0.1 for `normpos-grasp emulate-ur`), or 'sim' for the simulated driver",
+    )
+    p.add_argument("--execute", action="store_true", help="send the plans to the robot (default: dry run)")
+    p.add_argument("--view", action="store_true", help="serve a live 3D view of the cell on 127.0.0.1")
+    p.add_argument("--view-port", type=int, default=8765, help="port of the live view (0: any free port)")
+    p.add_argument("--max-picks", type=int, default=20, help="most loop turns")
+    p.add_argument(
+        "--segmenter",
+        choices=SEGMENTERS,
+        default=None,
+        help="instance source: model (bundled ONNX), depth (model-free) or gt (BOP masks / synthetic truth); "
+        "default: gt for BOP and synthetic sources, model for a camera",
+    )
+    p.add_argument(
+        "--models",
+        type=Path,
+        default=None,
+        help="template library or BOP models folder; default: the synthetic part library for synthetic sources and "
+        "normpos_grasp BOP data, else the cell's templates",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic bin")
+    p.add_argument("--sensor", default="d435", help="depth-noise preset of the synthetic bin")
+    p.add_argument(
+        "--no-home",
+        action="store_true",
+        help="with --execute: plan from where the arm is instead of moving to the cell's home first",
+    )
+    p.add_argument("--arrive-tol", type=float, default=1e-3, help="joint tolerance for a finished move, rad")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for plan_NN.json, run.json and the current frame's "
+        "scene.glb (watch it with `normpos-grasp view --report OUT`)",
+    )
+    p.add_argument("--linger", type=float, default=0.0, help="with --view: keep serving this many seconds at the end")
+    p.set_defaults(handler=run)
+
+
+def arm_state_dict(state: Any, world_from_base: Any) -> dict[str, Any]:
+    """JSON-ready arm state for the live view: joints (rad), TCP in the world (m, rotation matrix), modes."""
+    world_from_tcp = np.asarray(world_from_base) @ np.asarray(state.base_from_tcp)
+    return {
+        "joints_rad": [round(float(v), 5) for v in state.q],
+        "joint_speeds_rad_s": [round(float(v), 4) for v in state.qd],
+        "tcp_xyz_m": [round(float(v), 5) for v in world_from_tcp[:3, 3]],
+        "tcp_rotation": np.round(world_from_tcp[:3, :3], 4).tolist(),
+        "robot_mode": int(state.robot_mode),
+        "safety_mode": int(state.safety_mode),
+        "protective_stop": bool(state.protective_stopped),
+        "emergency_stop": bool(state.emergency_stopped),
+        "program_running": bool(state.program_running),
+        "controller_time_s": round(float(state.timestamp), 3),
+    }
+
+
+def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
+    """(source, template library, segmenter, source kind)."""
+    from normpos_grasp.errors import InputError
+    from normpos_grasp.loop import BopFrameSource, SyntheticBinSource
+    from normpos_grasp.pipeline import make_segmenter
+    from normpos_grasp.sim.parts import default_part_library
+    from normpos_grasp.templates.library import load_library
+
+    text = str(args.source)
+    if text == "synthetic" or text.startswith("synthetic:"):
+        count_text = text.partition(":")[2] or "6"
+        try:
+            count = int(count_text)
+        except ValueError as exc:
+            raise InputError(f"--source synthetic:N needs a whole number of parts, got {count_text!r}") from exc
+        if count < 1:
+            raise InputError(f"--source synthetic:N needs at least one part, got {count}")
+        library = list(load_library(args.models)) if args.models else default_part_library()
+        source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library)
+        kind = args.segmenter or "gt"
+        if kind == "gt":
+            segmenter: Any = _SyntheticTruth(source)
+        else:
+            segmenter = make_segmenter(kind)
+        return source, library, segmenter, "synthetic"
+    if text == "realsense":
+        from normpos_grasp.realsense_source import RealSenseSource
+
+        kind = args.segmenter or "model"
+        if kind == "gt":
+            raise InputError("--segmenter gt needs ground truth: use a BOP or synthetic source")
+        if args.models is None and cell.templates_path is None:
+            raise InputError("no template library: pass --models or set `templates` in the cell file")
+        library = list(load_library(args.models or cell.templates_path))
+        return RealSenseSource(cell.world_from_camera), library, make_segmenter(kind), "realsense"
+    path = Path(text)
+    if not path.is_dir():
+        raise InputError(f"--source {text!r} is neither a folder, 'synthetic[:N]' nor 'realsense'")
+    bop = BopFrameSource(path, cell.world_from_camera)
+    names = bop.part_names()
+    if args.models is not None:
+        library = list(load_library(args.models))
+    elif names:
+        by_name = {t.name: t for t in default_part_library()}
+        library = [by_name[n] for n in dict.fromkeys(names.values()) if n in by_name]
+    elif cell.templates_path is not None:
+        library = list(load_library(cell.templates_path))
+    else:
+        raise InputError("no template library: pass --models or set `templates` in the cell file")
+    if not library:
+        raise InputError(f"the template library for {path} is empty")
+    kind = args.segmenter or "gt"
+    segmenter = bop.ground_truth_segmenter(names) if kind == "gt" else make_segmenter(kind)
+    return bop, library, segmenter, "bop"
+
+
+class _SyntheticTruth:
+    """The synthetic bin's ground-truth visible masks for the frame it just rendered."""
+
+    def __init__(self, source: Any) -> None:
+        self.source = source
+
+    def segment(self, frame: Any) -> list[Any]:
+        from normpos_grasp.errors import InputError
+
+        last = self.source.last
+        if last is None or last.frame is not frame:
+            raise InputError("the synthetic ground truth only knows the frame its source rendered last")
+        return list(last.instances)
+
+
+def run(args: argparse.Namespace) -> int:
+    from normpos_grasp.demo import resolve_cell
+    from normpos_grasp.errors import InputError
+    from normpos_grasp.execution import DriverOptions, RtdeDriver, SafetyLimits, SimDriver
+    from normpos_grasp.loop import PickRecord, run_cell_loop
+    from normpos_grasp.pipeline import FrameResult
+    from normpos_grasp.report.frame import frame_twin
+
+    if args.max_picks < 1:
+        raise InputError(f"--max-picks must be at least 1, got {args.max_picks}")
+    cell = resolve_cell(args.cell)
+    t_start = time.perf_counter()
+    source, library, segmenter, source_kind = _source(args, cell)
+    limits = SafetyLimits.from_cell(cell)
+    driver: Any = None
+    view: Any = None
+    out: Path | None = args.out
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    mode = "execute" if args.execute else "dry run"
+    try:
+        if args.execute:
+            options = DriverOptions(arrive_tol_rad=args.arrive_tol)
+            if args.robot == "sim":
+                driver = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64), options=options)
+            else:
+                driver = RtdeDriver(args.robot, limits, options=options)
+            driver.connect()
+            if not args.no_home:
+                speed = min(1.0, float(np.min(cell.motion.joint_velocity)))
+                accel = min(2.0, float(np.min(cell.motion.joint_acceleration)))
+                driver.move_joints(np.asarray(cell.home_q)[None], speed, accel)
+        if args.view:
+            from normpos_grasp.report.live import LiveView
+
+            view = LiveView(port=args.view_port, title=f"normpos-grasp run: {cell.name}").start()
+            print(f"live view: {view.url}", flush=True)
+            if driver is not None:
+                view.follow(lambda: {"mode": mode, **arm_state_dict(driver.state(), cell.world_from_base)})
+            else:
+                view.publish(None, {"mode": mode, "joints_rad": [float(v) for v in cell.home_q]})
+
+        def on_plan(result: FrameResult) -> None:
+            if view is None and out is None:
+                return
+            scene = frame_twin(result, cell, candidates=True)
+            if view is not None:
+                view.publish(scene, None if driver is not None else _dry_state(result, mode))
+            if out is not None:
+                scene.export_glb(out / "scene.glb")  # `normpos-grasp view --report OUT` follows it
+
+        def on_pick(record: PickRecord) -> None:
+            doc = record.plan_json or {}
+            target = (doc.get("target") or {}).get("template", "-")
+            grasp = (doc.get("grasp") or {}).get("id", "-")
+            cands = doc.get("candidates") or {}
+            ms = ", ".join(f"{k} {v:.0f}" for k, v in record.timings_ms.items())
+            print(
+                f"pick {record.index + 1}: {record.status} ({record.check}); target {target}, grasp {grasp}; "
+                f"{cands.get('feasible', 0)} feasible of {cands.get('total', 0)} candidates; ms: {ms}",
+                flush=True,
+            )
+            if record.fault:
+                print(f"  fault: {record.fault}", flush=True)
+            if record.status == "no_feasible_grasp" and cands.get("rejected_by_reason"):
+                reasons = sorted(cands["rejected_by_reason"].items(), key=lambda kv: -kv[1])
+                print("  rejected: " + ", ".join(f"{k} {v}" for k, v in reasons), flush=True)
+            if out is not None and record.plan_json is not None:
+                (out / f"plan_{record.index + 1:02d}.json").write_text(json.dumps(record.plan_json, indent=1))
+
+        records = run_cell_loop(
+            cell,
+            source,
+            segmenter,
+            library,
+            driver,
+            execute=bool(args.execute),
+            max_picks=args.max_picks,
+            on_pick=on_pick,
+            on_plan=on_plan,
+        )
+        if view is not None and args.linger > 0:
+            time.sleep(args.linger)
+    finally:
+        if view is not None:
+            view.close()
+        if driver is not None:
+            driver.disconnect()
+            if isinstance(driver, SimDriver):
+                driver.shutdown()
+        close = getattr(source, "close", None)
+        if callable(close):
+            close()
+    statuses = [r.status for r in records]
+    summary = {
+        "cell": cell.name,
+        "source": str(args.source),
+        "source_kind": source_kind,
+        "mode": mode,
+        "picks": [
+            {"pick": r.index + 1, "status": r.status, "check": r.check, "fault": r.fault, "timings_ms": r.timings_ms}
+            for r in records
+        ],
+        "wall_time_s": round(time.perf_counter() - t_start, 3),
+    }
+    if out is not None:
+        (out / "run.json").write_text(json.dumps(summary, indent=1))
+    done = sum(1 for s in statuses if s in ("picked", "dry_run"))
+    print(
+        f"{mode}: {done} of {len(records)} turns planned{' and picked' if args.execute else ''}; "
+        f"{summary['wall_time_s']} s"
+    )
+    if any(s in ("driver_fault", "unsafe_plan") for s in statuses):
+        return 2
+    if done == 0 or "pick_failed" in statuses:
+        return 1
+    return 0
+
+
+def _dry_state(result: Any, mode: str) -> dict[str, Any]:
+    plan = result.plan
+    state: dict[str, Any] = {"mode": mode, "plan": plan.status if plan is not None else "none"}
+    if plan is not None and plan.waypoints:
+        state["joints_rad"] = [round(float(v), 5) for v in plan.waypoints[0].q]
+        state["waypoints"] = [w.name for w in plan.waypoints]
+    return state
