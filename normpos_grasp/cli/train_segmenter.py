@@ -1,0 +1,69 @@
+"""`normpos-grasp train-segmenter`: generate synthetic training scenes and train the bundled segmentation model."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+from tqdm import tqdm
+
+from normpos_grasp.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected WxH like 256x192, got {text!r}") from exc
+    return h, w
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "train-segmenter",
+        help="train the bundled RGB-D instance-segmentation model on synthetic scenes (needs the train extra)",
+        description=(
+            "Render synthetic scenes (D435 noise) into DIR/data (resumable), train the YOLACT-style model on CPU and "
+            "export DIR/normpos_seg.onnx in the YOLOv8-seg layout. The same --seed and --scenes give the same model."
+        ),
+    )
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=0, help="training seed (weights, order, augmentation)")
+    p.add_argument("--data", type=Path, default=None, help="folder of shard_*.npz (default: OUT/data)")
+    p.add_argument("--scenes", type=int, default=500, help="scenes to render if data is missing (2 views each)")
+    p.add_argument("--first-scene-seed", type=int, default=100000, help="seed of the first training scene")
+    p.add_argument("--steps", type=int, default=3000, help="optimiser steps")
+    p.add_argument("--batch", type=int, default=16, help="images per step")
+    p.add_argument("--lr", type=float, default=4e-3, help="peak learning rate")
+    p.add_argument("--input-size", type=_size, default=(192, 256), help="network input WxH (multiples of 32)")
+    p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--time-limit-min", type=float, default=0.0, help="stop training after this many minutes (0: none)")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from normpos_grasp.perception.train.trainer import TrainOptions, generate_shards, train
+
+    h, w = args.input_size
+    if h % 32 or w % 32:
+        raise InputError(f"--input-size must be multiples of 32, got {w}x{h}")
+    data = args.data or args.out / "data"
+    if args.data is None or not any(Path(data).glob("shard_*.npz")):
+        seeds = range(args.first_scene_seed, args.first_scene_seed + args.scenes)
+        with tqdm(total=len(seeds), desc="rendering scenes", unit="scene") as bar:
+            generate_shards(Path(data), seeds, (h, w), progress=bar.update)
+    options = TrainOptions(
+        input_hw=(h, w),
+        steps=args.steps,
+        batch=args.batch,
+        lr=args.lr,
+        threads=args.threads,
+        seed=args.seed,
+        time_limit_s=args.time_limit_min * 60.0,
+    )
+    path = train(Path(data), args.out, options, log=lambda msg: tqdm.write(msg))
+    print(f"model written to {path}")
+    return 0

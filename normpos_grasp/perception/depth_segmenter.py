@@ -1,0 +1,288 @@
+"""Model-free instance segmentation from depth: remove support planes, cut at depth jumps and concave creases.
+
+Steps, at a reduced resolution (every `stride`-th pixel) for speed, masks upsampled at the end:
+1. back-project the (median-filtered) depth to camera points and estimate normals from smoothed points;
+2. RANSAC the dominant plane (table or bin floor) and remove it together with everything behind it; then
+   remove further large planes parallel to it (bin floor above the table, belt) or perpendicular to it (bin walls);
+3. mark edges: depth discontinuities between neighbours, and normal changes at concave creases (two parts meeting:
+   (n_i - n_j) . (p_i - p_j) < 0; convex edges inside one part, like a cube's rim, are not cut);
+4. connected components of the remaining pixels, edge pixels given to the nearest component, size filters
+   (too small: noise; long and thin: a wall rim; too large: static structure).
+Labels are '' (assigned later by template fitting); score is the fraction of the component's pixels that are
+not edge pixels.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from normpos_grasp.camera.model import RGBDFrame
+from normpos_grasp.errors import InputError
+from normpos_grasp.perception.base import Instance
+from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DepthSegmenterOptions:
+    """Settings of `DepthSegmenter`.
+
+    Attributes:
+        stride: work on every stride-th pixel (2: 640x480 -> 320x240).
+        plane_tolerance_m: a point within this distance of a support plane belongs to it, metres.
+        plane_noise_factor: adds this times the stereo RMS z^2 * 0.0026 / m to the plane tolerance.
+        min_plane_fraction: a further plane (after the first) is removed only if it holds this fraction of the
+            valid pixels; of its inliers only connected regions of at least min_plane_area_m2 (m^2, larger than
+            any part face) are removed.
+        ransac_iterations: plane hypotheses per RANSAC run; ransac_samples: points scored per hypothesis.
+        depth_jump_m: neighbours (at working resolution) whose depths differ by more are separated, metres;
+            depth_jump_rel: plus this fraction of the depth.
+        crease_angle_deg: neighbours whose normals differ by more, at a concave crease, are separated, degrees.
+        smooth_depth_m: range sigma of the bilateral filter applied before normals, metres.
+        normal_step: normals from central differences over +-normal_step working pixels.
+        min_pixels: smallest instance, full-resolution pixels.
+        rim_width_m / rim_length_m: components thinner than rim_width_m and longer than rim_length_m are taken
+            for wall rims and dropped, metres.
+        max_extent_m: components longer than this are static structure and dropped, metres.
+        seed: RNG seed of the RANSAC (a private generator; the global RNG is untouched).
+    """
+
+    stride: int = 2
+    plane_tolerance_m: float = 0.003
+    plane_noise_factor: float = 1.5
+    min_plane_fraction: float = 0.05
+    min_plane_area_m2: float = 0.012
+    ransac_iterations: int = 96
+    ransac_samples: int = 2048
+    depth_jump_m: float = 0.006
+    depth_jump_rel: float = 0.005
+    crease_angle_deg: float = 35.0
+    smooth_depth_m: float = 0.01
+    normal_step: int = 2
+    min_pixels: int = 150
+    rim_width_m: float = 0.016
+    rim_length_m: float = 0.12
+    max_extent_m: float = 0.25
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.stride < 1 or self.ransac_iterations < 1 or self.ransac_samples < 3:
+            raise InputError("stride, ransac_iterations must be >= 1 and ransac_samples >= 3")
+        if self.plane_tolerance_m <= 0 or self.depth_jump_m <= 0 or not 0 < self.crease_angle_deg < 180:
+            raise InputError("plane_tolerance_m and depth_jump_m must be > 0, crease_angle_deg in (0, 180)")
+
+
+def _fit_plane(points: FloatArray) -> tuple[FloatArray, float]:
+    """Least-squares plane through (N, 3) points: unit normal n and offset d with n . p + d = 0."""
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    n = vt[2]
+    return n, -float(n @ c)
+
+
+def ransac_plane(
+    points: np.ndarray, tolerance: np.ndarray | float, iterations: int, samples: int, rng: np.random.Generator
+) -> tuple[FloatArray, float, int]:
+    """Dominant plane of (N, 3) points: (unit normal towards the camera origin, offset d, inlier count on the
+    scored subset). tolerance: scalar or (N,) per-point, metres."""
+    n_pts = len(points)
+    tol = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (n_pts,))
+    idx = rng.integers(0, n_pts, size=min(samples, n_pts))
+    sub, sub_tol = points[idx], tol[idx]
+    tri = points[rng.integers(0, n_pts, size=(iterations, 3))]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(normals, axis=1)
+    ok = norm > 1e-12
+    if not ok.any():
+        return np.array([0.0, 0.0, -1.0]), 0.0, 0
+    normals = normals[ok] / norm[ok, None]
+    ds = -np.einsum("ij,ij->i", normals, tri[ok, 0])
+    dist = np.abs(sub @ normals.T + ds[None, :])  # (S, I)
+    support = (dist < sub_tol[:, None]).sum(axis=0)
+    best = int(np.argmax(support))
+    n, d = normals[best], float(ds[best])
+    inl = np.abs(sub @ n + d) < sub_tol
+    if inl.sum() >= 3:
+        n, d = _fit_plane(sub[inl])
+    if d < 0:  # orient towards the camera origin: n . 0 + d > 0
+        n, d = -n, -d
+    return n, d, int((np.abs(sub @ n + d) < sub_tol).sum())
+
+
+class DepthSegmenter:
+    """A `Segmenter` that needs no model: plane removal + depth/normal edges + connected components."""
+
+    def __init__(self, options: DepthSegmenterOptions | None = None) -> None:
+        self.options = options or DepthSegmenterOptions()
+
+    def segment(self, frame: RGBDFrame) -> list[Instance]:
+        """Instances (label '') of the frame, largest first; [] when depth is all invalid or nothing stands out."""
+        if not isinstance(frame, RGBDFrame):
+            raise InputError(f"expected an RGBDFrame, got {type(frame).__name__}")
+        labels, count = self.label_image(frame)
+        out: list[Instance] = []
+        if count == 0:
+            return out
+        sizes = np.bincount(labels.ravel(), minlength=count + 1)
+        order = np.argsort(-sizes[1:], kind="stable") + 1
+        for k in order:
+            if sizes[k] < self.options.min_pixels:
+                continue
+            out.append(Instance(mask=labels == k, label="", score=1.0, instance_id=len(out) + 1))
+        return out
+
+    def label_image(self, frame: RGBDFrame) -> tuple[np.ndarray, int]:
+        """(H, W) int32 label image at frame resolution (0 = background) and the number of labels."""
+        o = self.options
+        depth_full = np.asarray(frame.depth_m, dtype=np.float32)
+        h0, w0 = depth_full.shape
+        s = o.stride
+        z = np.ascontiguousarray(depth_full[::s, ::s])
+        z = np.where(np.isfinite(z) & (z > 0), z, np.float32(0.0)).astype(np.float32)
+        valid = z > 0
+        if valid.sum() < 10:
+            return np.zeros((h0, w0), np.int32), 0
+        h, w = z.shape
+        cam = frame.camera
+        fx, fy = cam.fx / s, cam.fy / s
+        cx, cy = (cam.cx + 0.5) / s - 0.5, (cam.cy + 0.5) / s - 0.5
+        # fill holes (normalised 7x7 box average of valid neighbours) so that normals next to dropouts are sane
+        num = cv2.boxFilter(z, -1, (7, 7), normalize=False)
+        den = cv2.boxFilter(valid.astype(np.float32), -1, (7, 7), normalize=False)
+        zf = np.where(valid, z, np.where(den > 0, num / np.maximum(den, 1.0), 0.0)).astype(np.float32)
+        zm = cv2.medianBlur(zf, 5)
+        zm = np.where(zm > 0, zm, zf)
+        uu = (np.arange(w, dtype=np.float32) - cx) / fx
+        vv = (np.arange(h, dtype=np.float32) - cy) / fy
+        pts = np.empty((h, w, 3), np.float32)
+        pts[..., 0] = uu[None, :] * zm
+        pts[..., 1] = vv[:, None] * zm
+        pts[..., 2] = zm
+
+        # 2. support planes
+        rng = np.random.default_rng(o.seed)
+        sigma = 0.0026 * zm * zm
+        tol_img = o.plane_tolerance_m + o.plane_noise_factor * sigma
+        flat_idx = np.flatnonzero(valid)
+        p_valid = pts.reshape(-1, 3)[flat_idx]
+        t_valid = tol_img.reshape(-1)[flat_idx]
+        n1, d1, _ = ransac_plane(p_valid, t_valid, o.ransac_iterations, o.ransac_samples, rng)
+        sd = p_valid @ n1 + d1
+        removed = sd < t_valid  # on the first plane or behind it
+        px_area = (zm.reshape(-1)[flat_idx] / fx) ** 2  # m^2 seen by each working pixel (fronto-parallel)
+        for _ in range(3):
+            rest = np.flatnonzero(~removed)
+            if len(rest) < o.min_plane_fraction * len(flat_idx):
+                break
+            n, d, support = ransac_plane(p_valid[rest], t_valid[rest], o.ransac_iterations, o.ransac_samples, rng)
+            frac = support / min(o.ransac_samples, len(rest)) * len(rest) / len(flat_idx)
+            cosang = abs(float(n @ n1))
+            if frac < o.min_plane_fraction or 0.2 < cosang < 0.95:
+                break
+            # remove only connected inlier regions larger than any part face (tops of parts at one height are not
+            # a support surface)
+            inl = np.zeros(h * w, np.uint8)
+            inl[flat_idx[rest[np.abs(p_valid[rest] @ n + d) < t_valid[rest]]]] = 1
+            ncc, cc = cv2.connectedComponents(inl.reshape(h, w), connectivity=8)
+            area = np.bincount(cc.reshape(-1)[flat_idx], weights=px_area, minlength=ncc)
+            big = area >= o.min_plane_area_m2
+            big[0] = False
+            if not big[1:].any():
+                break
+            removed |= big[cc.reshape(-1)[flat_idx]]
+        fg = np.zeros(h * w, bool)
+        fg[flat_idx[~removed]] = True
+        fg = fg.reshape(h, w)
+
+        # 1. normals from edge-preserving smoothed depth, central differences over +-normal_step px
+        zb = cv2.bilateralFilter(zm, 7, o.smooth_depth_m, 3.0)
+        zb = np.where(zm > 0, zb, zm)
+        ps = np.empty_like(pts)
+        ps[..., 0] = uu[None, :] * zb
+        ps[..., 1] = vv[:, None] * zb
+        ps[..., 2] = zb
+        k = o.normal_step
+        du = np.zeros_like(ps)
+        dv = np.zeros_like(ps)
+        du[:, k:-k] = ps[:, 2 * k :] - ps[:, : -2 * k]
+        dv[k:-k] = ps[2 * k :] - ps[: -2 * k]
+        nrm = np.cross(du, dv)
+        nrm /= np.linalg.norm(nrm, axis=2, keepdims=True) + 1e-12
+        flip = np.einsum("ijk,ijk->ij", nrm, ps) > 0
+        nrm[flip] *= -1
+
+        # 3. edges
+        edge = np.zeros((h, w), bool)
+        jump_thr = o.depth_jump_m + o.depth_jump_rel * zm
+        cos_thr = np.cos(np.radians(o.crease_angle_deg))
+        gap = 2 * k + 4  # normals compared across supports that do not overlap, with the smoothing's width between
+        for axis in (0, 1):
+            a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+            b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
+            jump = np.abs(zm[a] - zm[b]) > jump_thr[a]
+            jump &= valid[a] & valid[b]
+            edge[a] |= jump
+            edge[b] |= jump
+            a = (slice(None, -gap), slice(None)) if axis == 0 else (slice(None), slice(None, -gap))
+            b = (slice(gap, None), slice(None)) if axis == 0 else (slice(None), slice(gap, None))
+            cos = np.einsum("ijk,ijk->ij", nrm[a], nrm[b])
+            concave = np.einsum("ijk,ijk->ij", nrm[a] - nrm[b], ps[a] - ps[b]) < 0
+            crease = (cos < cos_thr) & concave & valid[a] & valid[b]
+            for off in range(k + 1, gap - k):  # the pixels between the two supports
+                m = (
+                    (slice(off, off + crease.shape[0]), slice(None))
+                    if axis == 0
+                    else (
+                        slice(None),
+                        slice(off, off + crease.shape[1]),
+                    )
+                )
+                edge[m] |= crease
+        core = fg & ~edge
+
+        # 4. components
+        count, lab, stats, _ = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=4)
+        min_px = max(1, int(np.ceil(o.min_pixels / (s * s) * 0.5)))
+        keep = np.zeros(count, bool)
+        keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_px
+        lab = np.where(keep[lab], lab, 0).astype(np.int32)
+        if not keep.any():
+            return np.zeros((h0, w0), np.int32), 0
+        # give edge pixels (and dropped small bits) of the foreground to the nearest kept component within 3 px
+        seeds = (lab == 0).astype(np.uint8)
+        dist, nearest = cv2.distanceTransformWithLabels(seeds, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
+        ys, xs = np.nonzero(lab)
+        pix_label = np.zeros(int(nearest.max()) + 1, np.int32)
+        pix_label[nearest[ys, xs]] = lab[ys, xs]
+        grow = fg & (lab == 0) & (dist <= 3.0)
+        lab[grow] = pix_label[nearest[grow]]
+
+        # size / shape filters in metres
+        final = np.zeros(count, np.int32)
+        next_id = 0
+        for comp in np.flatnonzero(keep):
+            x0, y0 = stats[comp, cv2.CC_STAT_LEFT], stats[comp, cv2.CC_STAT_TOP]
+            x1, y1 = x0 + stats[comp, cv2.CC_STAT_WIDTH], y0 + stats[comp, cv2.CC_STAT_HEIGHT]
+            ys, xs = np.nonzero(lab[max(0, y0 - 4) : y1 + 4, max(0, x0 - 4) : x1 + 4] == comp)
+            if len(ys) < min_px:
+                continue
+            zmed = float(np.median(zm[ys + max(0, y0 - 4), xs + max(0, x0 - 4)]))
+            m_per_px = zmed / fx
+            (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
+            short, long_ = sorted((rw * m_per_px, rh * m_per_px))
+            if long_ > o.max_extent_m or (short < o.rim_width_m and long_ > o.rim_length_m):
+                continue
+            next_id += 1
+            final[comp] = next_id
+        lab = final[lab]
+        if next_id == 0:
+            return np.zeros((h0, w0), np.int32), 0
+        up = cv2.resize(lab, (w0, h0), interpolation=cv2.INTER_NEAREST) if s > 1 else lab
+        valid_full = np.isfinite(depth_full) & (depth_full > 0)
+        up = np.where(valid_full, up, 0).astype(np.int32)
+        return up, next_id

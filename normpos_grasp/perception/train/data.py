@@ -1,0 +1,145 @@
+"""Training / evaluation samples from the synthetic scenes (normpos_grasp.sim): frames with ground-truth instances.
+
+A sample is one rendered view of a settled scene with D435 sensor noise; ground truth are the visible masks of the
+parts with their part names as labels. `pack_sample` turns it into the arrays the trainer reads, at the model's
+input resolution (letterboxed exactly as `OnnxSegmenter` does at run time).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from normpos_grasp.camera.model import RGBDFrame
+from normpos_grasp.errors import DatasetError
+from normpos_grasp.perception.base import Instance
+from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, preprocess
+from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+CLASS_NAMES: tuple[str, ...] = ("cube", "box", "bar", "cylinder", "sphere", "plate", "bracket", "ring")
+
+
+@dataclass(frozen=True, eq=False)
+class Sample:
+    """One frame and its ground truth: instances (visible masks, part names) and their visible fractions (N,)."""
+
+    frame: RGBDFrame
+    instances: list[Instance]
+    visib_fract: FloatArray
+
+
+def synth_samples(
+    seed: int,
+    views: int = 2,
+    sensor: str = "d435",
+    resolution: tuple[int, int] = (640, 480),
+    **scene_overrides: object,
+) -> list[Sample]:
+    """`views` noisy views of one random scene (container, part count, clutter and stacking drawn from `seed`;
+    `scene_overrides` replace SceneOptions fields, for example clutter=1.0, stack_layers=1)."""
+    from normpos_grasp.sim.cameras import CameraOptions, sample_camera
+    from normpos_grasp.sim.parts import default_part_library
+    from normpos_grasp.sim.render import make_renderer
+    from normpos_grasp.sim.scene import SceneOptions, compose_scene
+    from normpos_grasp.sim.sensor import sensor_preset
+
+    rng = np.random.default_rng(seed)
+    container = str(rng.choice(["bin", "bin", "table", "conveyor"]))
+    opts = SceneOptions(
+        count=int(rng.integers(3, 15)),
+        container=container,
+        clutter=float(rng.uniform(0.0, 0.8)),
+        stack_layers=int(rng.integers(1, 4)),
+        seed=int(rng.integers(2**31)),
+    )
+    if scene_overrides:
+        opts = replace(opts, **scene_overrides)  # type: ignore[arg-type]
+    layout = compose_scene(opts, default_part_library())
+    renderer = make_renderer(layout, resolution[0], resolution[1])
+    noise = sensor_preset(sensor)
+    out: list[Sample] = []
+    try:
+        for _ in range(views):
+            camera = sample_camera(CameraOptions(resolution=resolution, sensor=sensor), layout.container_centre(), rng)
+            ren = renderer.render(camera)
+            rgb, depth = noise.apply(ren, camera, rng)
+            frame = RGBDFrame(rgb=rgb, depth_m=depth, camera=camera, scene_id=seed)
+            inst: list[Instance] = []
+            fr = ren.visib_fractions
+            keep = []
+            for k, name in enumerate(layout.part_names):
+                m = ren.masks_visible[k]
+                if m.any():
+                    inst.append(Instance(mask=m.copy(), label=name, score=1.0, instance_id=len(inst) + 1, source_id=k))
+                    keep.append(fr[k])
+            out.append(Sample(frame, inst, np.asarray(keep, dtype=np.float64)))
+    finally:
+        renderer.close()
+    return out
+
+
+def pack_sample(
+    sample: Sample, input_hw: tuple[int, int], depth_spec: DepthChannelSpec, min_pixels: int = 100
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(x (4, H, W) float16, masks (N, H/4, W/4) bool, boxes (N, 4) float32 xyxy input pixels, classes (N,) int64)
+    for instances with at least `min_pixels` visible pixels."""
+    f = sample.frame
+    x, lb = preprocess(f.rgb, f.depth_m, input_hw, depth_spec)
+    mh, mw = input_hw[0] // 4, input_hw[1] // 4
+    masks, boxes, classes = [], [], []
+    for inst in sample.instances:
+        if inst.pixel_count < min_pixels:
+            continue
+        ys, xs = np.nonzero(inst.mask)
+        box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64) * lb.scale
+        box += [lb.left, lb.top, lb.left, lb.top]
+        m = cv2.resize(inst.mask.astype(np.float32), (lb.new_w, lb.new_h), interpolation=cv2.INTER_AREA)
+        canvas = np.zeros(input_hw, np.float32)
+        canvas[lb.top : lb.top + lb.new_h, lb.left : lb.left + lb.new_w] = m
+        small = cv2.resize(canvas, (mw, mh), interpolation=cv2.INTER_AREA) > 0.5
+        masks.append(small)
+        boxes.append(box)
+        classes.append(CLASS_NAMES.index(inst.label))
+    n = len(masks)
+    return (
+        x[0].astype(np.float16),
+        np.asarray(masks, bool).reshape(n, mh, mw),
+        np.asarray(boxes, np.float32).reshape(n, 4),
+        np.asarray(classes, np.int64).reshape(n),
+    )
+
+
+def write_shard(path: Path, packed: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]) -> None:
+    """Store packed samples in one .npz (masks/boxes/classes concatenated with per-sample offsets)."""
+    counts = np.array([len(p[2]) for p in packed], np.int64)
+    np.savez(
+        path,
+        x=np.stack([p[0] for p in packed]),
+        masks=np.concatenate([p[1] for p in packed]) if counts.sum() else np.zeros((0, 1, 1), bool),
+        boxes=np.concatenate([p[2] for p in packed]),
+        classes=np.concatenate([p[3] for p in packed]),
+        counts=counts,
+    )
+
+
+def read_shards(folder: Path) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """All shards of `folder`: x (S, C, H, W) float16 and per-sample lists of masks, boxes, classes."""
+    files = sorted(Path(folder).glob("shard_*.npz"))
+    if not files:
+        raise DatasetError(f"no shard_*.npz files in {folder}; generate data with `normpos-grasp train-segmenter`")
+    xs, ms, bs, cs = [], [], [], []
+    for f in files:
+        d = np.load(f)
+        xs.append(d["x"])
+        off = np.concatenate([[0], np.cumsum(d["counts"])])
+        for i in range(len(d["counts"])):
+            ms.append(d["masks"][off[i] : off[i + 1]])
+            bs.append(d["boxes"][off[i] : off[i + 1]])
+            cs.append(d["classes"][off[i] : off[i + 1]])
+    return np.concatenate(xs), ms, bs, cs
