@@ -350,14 +350,16 @@ class GuardedDriver:
             if self._fault is None:
                 self._settle_servo(samples[-1])
             self._backend_servo_end()
-        return self._monitor(qs[-1], self.options.move_margin_s, "follow_trajectory")
+        return self._monitor(
+            qs[-1], self.options.move_margin_s, "follow_trajectory", tol=10 * self.options.arrive_tol_rad
+        )
 
     def _settle_servo(self, target: FloatArray) -> None:
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
             st = self._backend_state()
             self._check_state(st, during="stream settle", stop=True)
-            if float(np.max(np.abs(st.q - target))) < self.options.arrive_tol_rad:
+            if float(np.max(np.abs(st.q - target))) < 0.25 * self.options.arrive_tol_rad:
                 return
             self._backend_servo(target, self.options.stream_period_s)
             time.sleep(self.options.stream_period_s)
@@ -432,13 +434,15 @@ class GuardedDriver:
                     log.warning("stop after %s failed: %s", type(fault).__name__, exc)
             raise self._latch(fault)
 
-    def _monitor(self, q_goal: FloatArray, timeout_s: float, what: str) -> ArmState:
-        """Poll state until the arm rests at q_goal; faults and timeouts stop the arm and raise."""
+    def _monitor(self, q_goal: FloatArray, timeout_s: float, what: str, tol: float | None = None) -> ArmState:
+        """Poll state until the arm rests within `tol` (rad; default arrive_tol_rad) of q_goal; faults and timeouts
+        stop the arm and raise."""
+        tol = self.options.arrive_tol_rad if tol is None else tol
         start = time.monotonic()
         while True:
             st = self._backend_state()
             self._check_state(st, during=what, stop=True)
-            at_goal = float(np.max(np.abs(st.q - q_goal))) <= max(self.options.arrive_tol_rad, 1e-5)
+            at_goal = float(np.max(np.abs(st.q - q_goal))) <= max(tol, 1e-5)
             if at_goal and not self._backend_busy():
                 return st
             if not self._backend_busy() and float(np.max(np.abs(st.qd))) < 1e-6 and not at_goal:
@@ -446,7 +450,7 @@ class GuardedDriver:
                 time.sleep(self.options.poll_s)
                 st2 = self._backend_state()
                 self._check_state(st2, during=what, stop=True)
-                if not self._backend_busy() and float(np.max(np.abs(st2.q - q_goal))) > self.options.arrive_tol_rad:
+                if not self._backend_busy() and float(np.max(np.abs(st2.q - q_goal))) > tol:
                     raise self._latch(
                         DriverFault(
                             f"{what} ended {float(np.max(np.abs(st2.q - q_goal))):.4f} rad short of its goal "
