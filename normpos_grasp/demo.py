@@ -38,9 +38,9 @@ BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction")
 @dataclass(frozen=True)
 class DemoOptions:
     """Demo settings. parts: parts dropped into the bin; max_picks: loop turns; sensor: depth-noise preset;
-    segmenter: 'model' (bundled ONNX) or 'depth'; use_emulator: try the loopback UR controller first;
-    emulator_host: 127.0.0.x address for it; arrive_tol_rad: a move is complete when every joint is this close to
-    its goal, rad (the issue's 1e-3 rad execution tolerance)."""
+    segmenter: 'model' (bundled ONNX), 'depth' (model-free) or 'gt' (the synthetic truth masks); use_emulator:
+    try the loopback UR controller first; emulator_host: 127.0.0.x address for it; arrive_tol_rad: a move is
+    complete when every joint is this close to its goal, rad (the issue's 1e-3 rad execution tolerance)."""
 
     cell: str = "ur5e_bin_parallel"
     seed: int = 0
@@ -77,8 +77,15 @@ def resolve_cell(name_or_path: str) -> CellConfig:
         return load_cell(file)
 
 
-def choose_segmenter(kind: str) -> tuple[Segmenter, str]:
-    """The requested segmenter; the depth segmenter if the bundled model is not available (logged)."""
+def choose_segmenter(kind: str, source: SyntheticBinSource | None = None) -> tuple[Segmenter, str]:
+    """The requested segmenter; the depth segmenter if the bundled model is not available (logged).
+
+    'gt' takes the synthetic bin's true masks (needs `source`): it checks everything after segmentation alone.
+    """
+    if kind == "gt":
+        if source is None:
+            raise InputError("the 'gt' segmenter needs the synthetic source whose truth it reports")
+        return source.ground_truth_segmenter(), "gt"
     try:
         return make_segmenter(kind), kind
     except NormposError as exc:
@@ -145,9 +152,9 @@ def run_demo(
     t_start = time.perf_counter()
     step("loading the cell")
     cell = resolve_cell(opts.cell)
-    segmenter, seg_kind = choose_segmenter(opts.segmenter)
     step(f"dropping {opts.parts} parts into the bin (physics)")
     source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor)
+    segmenter, seg_kind = choose_segmenter(opts.segmenter, source)
     from normpos_grasp.sim.parts import default_part_library
 
     library = default_part_library()
@@ -184,6 +191,7 @@ def pick_row(record: PickRecord) -> dict[str, Any]:
         "grasp": f"{grasp.get('scheme', '-')} {grasp.get('id', '')}".strip(),
         "joint path (rad)": round(path, 2),
         "outcome": f"{record.status} ({record.check})",
+        "fault": record.fault or "-",
         **{f"{k} ms": round(v, 1) for k, v in record.timings_ms.items()},
     }
 
@@ -220,7 +228,7 @@ def write_report(
             files[plan_path.stem] = plan_path
     if not records:
         raise InputError("the demo produced no frames; nothing to report")
-    twin = frame_twin(records[0].result, cell)
+    twin = frame_twin(records[0].result, cell, candidates=True)
     twin.export_glb(out / "scene.glb")
     files["scene"] = out / "scene.glb"
     timings = [{"pick": r.index + 1, **{k: round(v, 2) for k, v in r.timings_ms.items()}} for r in records]

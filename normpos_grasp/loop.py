@@ -111,6 +111,11 @@ class SyntheticBinSource:
         self._frame_index += 1
         return self.last.frame
 
+    def ground_truth_segmenter(self) -> Segmenter:
+        """A segmenter returning the true visible masks (labels = part labels) of the frame captured last; checks
+        everything after segmentation on its own."""
+        return _SyntheticTruth(self)
+
     def true_part_of(self, plan: PickPlan) -> int:
         """Index of the true part nearest to the plan's target (centre distance), -1 if none is within 5 cm."""
         if plan.chosen is None or self.layout.n_parts == 0:
@@ -152,6 +157,19 @@ class SyntheticBinSource:
         if outcome in ("held", "not_checked"):
             self.layout = remove_parts(self.layout, [part])
         return outcome
+
+
+class _SyntheticTruth:
+    """The synthetic bin's ground-truth instances of the frame it rendered last."""
+
+    def __init__(self, source: SyntheticBinSource) -> None:
+        self.source = source
+
+    def segment(self, frame: RGBDFrame) -> list[Instance]:
+        last = self.source.last
+        if last is None or last.frame is not frame:
+            raise InputError("the synthetic ground truth only knows the frame its source rendered last")
+        return list(last.instances)
 
 
 class BopFrameSource:

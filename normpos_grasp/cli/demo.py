@@ -21,8 +21,14 @@ def register(sub: Any) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
     parser.add_argument("--parts", type=int, default=6, help="parts dropped into the bin")
     parser.add_argument("--max-picks", type=int, default=8, help="most picks to attempt")
-    parser.add_argument("--segmenter", choices=("model", "depth"), default="model")
+    parser.add_argument(
+        "--segmenter",
+        choices=("model", "depth", "gt"),
+        default="model",
+        help="model: the bundled ONNX model (depth if it is missing); depth: model-free; gt: the synthetic truth masks",
+    )
     parser.add_argument("--no-emulator", action="store_true", help="use the simulated driver instead of the emulator")
+    parser.add_argument("--emulator-host", default="127.0.0.1", help="loopback address for the emulator (127.x.y.z)")
     parser.set_defaults(handler=run)
 
 
@@ -36,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
         max_picks=args.max_picks,
         segmenter=args.segmenter,
         use_emulator=not args.no_emulator,
+        emulator_host=args.emulator_host,
     )
     bar = tqdm(total=None, desc="demo", unit=" step", leave=False)
 
@@ -47,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
         plan = record.plan_json or {}
         target = (plan.get("target") or {}).get("template", "-")
         bar.write(f"pick {record.index + 1}: {record.status} ({record.check}), target {target}")
+        if record.fault:
+            bar.write(f"  fault: {record.fault}")
 
     try:
         result = run_demo(args.out, options, on_step, on_pick)
@@ -67,4 +76,8 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['parts_left_in_bin']} parts left; {summary['wall_time_s']} s"
     )
     print(f"report: {result.files['report']}  (3D twin: {result.files['scene']})")
+    faults = [r.fault for r in result.records if r.status in ("driver_fault", "unsafe_plan")]
+    if faults:
+        print(f"the loop stopped on a fault: {faults[-1]}")
+        return 1
     return 0

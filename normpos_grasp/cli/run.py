@@ -113,7 +113,7 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
         source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library)
         kind = args.segmenter or "gt"
         if kind == "gt":
-            segmenter: Any = _SyntheticTruth(source)
+            segmenter: Any = source.ground_truth_segmenter()
         else:
             segmenter = make_segmenter(kind)
         return source, library, segmenter, "synthetic"
@@ -146,21 +146,6 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
     kind = args.segmenter or "gt"
     segmenter = bop.ground_truth_segmenter(names) if kind == "gt" else make_segmenter(kind)
     return bop, library, segmenter, "bop"
-
-
-class _SyntheticTruth:
-    """The synthetic bin's ground-truth visible masks for the frame it just rendered."""
-
-    def __init__(self, source: Any) -> None:
-        self.source = source
-
-    def segment(self, frame: Any) -> list[Any]:
-        from normpos_grasp.errors import InputError
-
-        last = self.source.last
-        if last is None or last.frame is not frame:
-            raise InputError("the synthetic ground truth only knows the frame its source rendered last")
-        return list(last.instances)
 
 
 def run(args: argparse.Namespace) -> int:
