@@ -107,9 +107,13 @@ def independent_check(plan, cell: CellConfig, layout, gripper_name: str) -> list
     held.add_object("held", layout.templates[target].mesh)
     grasp_tcp = plan.chosen.candidate.world_from_tcp
     tcp_from_object = np.linalg.inv(grasp_tcp) @ layout.world_from_object[target]
-    wq = {w.name: w.q for w in plan.waypoints}
     traj = plan.trajectory
-    t_of = {n: traj.t[int(np.argmin(np.abs(traj.q - q).sum(axis=1)))] for n, q in wq.items()}
+    t_of: dict[str, float] = {}
+    start = 0
+    for w in plan.waypoints:  # in order: a waypoint is reached after the previous one (lift may equal pre_grasp)
+        k = start + int(np.argmin(np.abs(traj.q[start:] - w.q).sum(axis=1)))
+        t_of[w.name] = float(traj.t[k])
+        start = k
     base = cell.world_from_base
     problems = []
     for t, q in zip(traj.t[::2], traj.q[::2], strict=True):
