@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import pickle
 import time
+from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "2")
@@ -32,8 +34,18 @@ SCENE_SETS: dict[str, dict[str, object]] = {
 }
 
 
-def scenes(name: str, first_seed: int, frames: int) -> list[Sample]:
-    return [synth_samples(first_seed + i, views=1, **SCENE_SETS[name])[0] for i in range(frames)]  # type: ignore[arg-type]
+def scenes(name: str, first_seed: int, frames: int, cache: Path | None) -> list[Sample]:
+    """Held-out samples of one set; with `cache`, stored there (pickle) and reused on the next run."""
+    path = cache / f"{name}_{first_seed}_{frames}.pkl" if cache is not None else None
+    if path is not None and path.exists():
+        with path.open("rb") as fh:
+            return list(pickle.load(fh))
+    samples = [synth_samples(first_seed + i, views=1, **SCENE_SETS[name])[0] for i in range(frames)]  # type: ignore[arg-type]
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("wb") as fh:
+            pickle.dump(samples, fh)
+    return samples
 
 
 def evaluate(seg: Segmenter, samples: list[Sample]) -> MatchStats:
@@ -72,11 +84,14 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=900000, help="first held-out scene seed")
     parser.add_argument("--model", default=None, help="ONNX model (default: the bundled one)")
     parser.add_argument("--repeats", type=int, default=30, help="latency repeats")
+    parser.add_argument("--cache", type=Path, default=None, help="folder to keep the rendered scenes in")
     parser.add_argument("--skip-model", action="store_true")
     parser.add_argument("--skip-depth", action="store_true")
     args = parser.parse_args()
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()[0]:.1f} (timings are inflated when loaded)")
-    sets = {name: scenes(name, args.first_seed + 10000 * i, args.frames) for i, name in enumerate(SCENE_SETS)}
+    sets = {
+        name: scenes(name, args.first_seed + 10000 * i, args.frames, args.cache) for i, name in enumerate(SCENE_SETS)
+    }
     if not args.skip_model:
         model = OnnxSegmenter(args.model)
         for name, samples in sets.items():

@@ -1,0 +1,50 @@
+"""Training pipeline end to end at toy scale: render one scene, pack, train two steps, export, decode with
+OnnxSegmenter (the export must be in the layout the decoder reads)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytest.importorskip("onnx")
+
+from normpos_grasp.errors import InputError
+from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, OnnxSegmenter, OnnxSegmenterOptions
+from normpos_grasp.perception.train.data import CLASS_NAMES, pack_sample, read_shards, synth_samples
+from normpos_grasp.perception.train.trainer import TrainOptions, generate_shards, train
+
+
+def test_pack_sample_boxes_and_masks_agree() -> None:
+    sample = synth_samples(424242, views=1, count=4, container="table")[0]
+    assert all(i.label in CLASS_NAMES for i in sample.instances)
+    x, masks, boxes, classes = pack_sample(sample, (96, 128), DepthChannelSpec(), min_pixels=50)
+    assert x.shape == (4, 96, 128)
+    assert len(masks) == len(boxes) == len(classes) >= 1
+    for m, b in zip(masks, boxes, strict=True):
+        ys, xs = np.nonzero(m)
+        if len(ys) == 0:
+            continue
+        # mask pixels (stride 4) lie inside the box, up to one mask cell
+        assert xs.min() * 4 >= b[0] - 4 and (xs.max() + 1) * 4 <= b[2] + 4
+        assert ys.min() * 4 >= b[1] - 4 and (ys.max() + 1) * 4 <= b[3] + 4
+
+
+@pytest.mark.slow
+def test_train_two_steps_and_decode(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    generate_shards(data, range(7, 8), (96, 128), views=1, shard_size=1)
+    xs, _, _, _ = read_shards(data)
+    assert xs.shape == (1, 4, 96, 128)
+    opts = TrainOptions(input_hw=(96, 128), width=16, steps=2, batch=1, threads=1, seed=3)
+    path = train(data, tmp_path / "out", opts)
+    seg = OnnxSegmenter(path, options=OnnxSegmenterOptions(conf_threshold=0.0, max_detections=5))
+    assert seg.class_names == list(CLASS_NAMES)
+    assert seg.channels == 4 and seg.input_hw == (96, 128)
+    sample = synth_samples(8, views=1, count=3, container="table")[0]
+    inst = seg.segment(sample.frame)
+    assert all(i.mask.shape == sample.frame.depth_m.shape and i.label in CLASS_NAMES for i in inst)
+    with pytest.raises(InputError, match="depth"):
+        seg.run_raw(sample.frame.rgb, None)
