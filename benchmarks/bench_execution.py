@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -24,7 +25,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 STREAM_CLIENT = r"""
 import socket, struct, sys, time, json
-host, seconds = sys.argv[1], float(sys.argv[2])
+import os
+host, seconds, prio = sys.argv[1], float(sys.argv[2]), int(sys.argv[3])
+if prio:
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
 s = socket.create_connection((host, 30004)); s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 def send(kind, payload=b""):
     s.sendall(struct.pack(">HB", len(payload) + 3, kind) + payload)
@@ -83,6 +87,12 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--host", default="127.0.0.60")
     ap.add_argument("--rtt-samples", type=int, default=200)
+    ap.add_argument(
+        "--rt-priority",
+        type=int,
+        default=0,
+        help="SCHED_FIFO priority for the emulator loop and the stream client (0: normal scheduling)",
+    )
     args = ap.parse_args()
 
     from normpos_grasp.execution import RtdeDriver, SafetyLimits, execute_plan
@@ -91,7 +101,9 @@ def main() -> int:
     plan, cell = _plan()
     limits = SafetyLimits.from_cell(cell)
     print(f"plan: {len(plan['joint_waypoints'])} waypoints, trajectory {plan['trajectory']['duration_s']:.2f} s")
-    with EmulatorProcess(args.host, "ur5e", log_path="/tmp/bench_execution_emulator.log") as emu:
+    extra = ("--rt-priority", str(args.rt_priority)) if args.rt_priority else ()
+    print(f"real-time priority: {args.rt_priority or 'off'}; load average {os.getloadavg()}")
+    with EmulatorProcess(args.host, "ur5e", log_path="/tmp/bench_execution_emulator.log", extra_args=extra) as emu:
         driver = RtdeDriver(args.host, limits)
         driver.connect()
         try:
@@ -100,7 +112,9 @@ def main() -> int:
                 driver.move_joints([plan["joint_waypoints"][0]["q"]], 1.0, 1.0)
                 seconds = plan["trajectory"]["duration_s"] + 4.0
                 client = subprocess.Popen(
-                    [sys.executable, "-c", STREAM_CLIENT, args.host, str(seconds)], stdout=subprocess.PIPE, text=True
+                    [sys.executable, "-c", STREAM_CLIENT, args.host, str(seconds), str(args.rt_priority)],
+                    stdout=subprocess.PIPE,
+                    text=True,
                 )
                 time.sleep(0.5)
                 t0 = time.monotonic()

@@ -205,12 +205,20 @@ def test_unknown_script_refused_loudly(emu: EmulatorProcess) -> None:
 
 def test_planner_plan_executes(driver: RtdeDriver) -> None:
     trimesh = pytest.importorskip("trimesh")
+    from dataclasses import replace
+
     from normpos_grasp.cell import load_cell
     from normpos_grasp.geometry import make_pose
     from normpos_grasp.planning import plan_pick
     from normpos_grasp.templates.model import Template, TemplateFit
 
     cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
+    fast = replace(  # twice the example's caps (still below the UR5e's rated 3.14 rad/s): a shorter test
+        cell.motion,
+        joint_velocity=np.minimum(cell.motion.joint_velocity * 2.0, 3.0),
+        joint_acceleration=cell.motion.joint_acceleration * 2.0,
+    )
+    cell = replace(cell, motion=fast)
     part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
     fit = TemplateFit(part, make_pose(None, [0.5, 0.05, 0.025]), 1.0, 0.0, 1.0, 1.0, 0.0, True, instance_id=1)
     plan = plan_pick([fit], [], cell).to_json()

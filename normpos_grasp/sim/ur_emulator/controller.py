@@ -78,6 +78,8 @@ class EmulatorOptions:
     model: UR model name ('ur5e', ...). host: loopback address to bind (127.0.0.x). period_s: control period (s).
     unlock_delay_s: a protective stop cannot be unlocked before this many seconds (UR: 5 s).
     q_home: initial joints (rad). control_version: (major, minor, bugfix, build) reported over RTDE.
+    rt_priority: 0 = normal scheduling; 1-99 = SCHED_FIFO for the control loop thread (like a real controller;
+    use on a loaded machine to keep the 2 ms period, if the process may).
     """
 
     model: str = "ur5e"
@@ -86,7 +88,7 @@ class EmulatorOptions:
     unlock_delay_s: float = 5.0
     q_home: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
     control_version: tuple[int, int, int, int] = (5, 15, 0, 0)
-    fault_port: int = 0  # unused placeholder for forward compatibility; faults go through the dashboard `emu` verbs
+    rt_priority: int = 0  # >0: run the 500 Hz loop under SCHED_FIFO at this priority (Linux, needs CAP_SYS_NICE)
 
 
 @dataclass
@@ -212,21 +214,30 @@ class EmulatedController:
 
     # ------------------------------------------------------------------ script port
     def load_script(self, text: str) -> None:
-        """Run an uploaded script: ur_rtde's control script (recognised by its banner) or a loud refusal."""
+        """Run an uploaded script: ur_rtde's control script (recognised by its banner) or a loud refusal.
+
+        The text is parsed before the controller lock is taken, so the 500 Hz loop keeps running meanwhile."""
         log.debug("script received (%d chars):\n%s", len(text), text)
-        with self.lock:
-            if UR_RTDE_BANNER not in text:
-                first = text.strip().splitlines()[0] if text.strip() else "<empty>"
-                msg = f"refused unknown script (no ur_rtde banner), first line: {first[:120]!r}"
-                log.error(msg)
+        if UR_RTDE_BANNER not in text:
+            first = text.strip().splitlines()[0] if text.strip() else "<empty>"
+            msg = f"refused unknown script (no ur_rtde banner), first line: {first[:120]!r}"
+            log.error(msg)
+            with self.lock:
                 self.refused_scripts.append(first[:120])
                 self.events.append(msg)
-                return
-            banner = text.split(UR_RTDE_BANNER, 1)[1].split(")", 1)[0]
-            if banner not in KNOWN_BANNER_DATES:
-                log.warning(
-                    "ur_rtde control script with unknown banner date %r; expected %s", banner, KNOWN_BANNER_DATES
-                )
+            return
+        banner = text.split(UR_RTDE_BANNER, 1)[1].split(")", 1)[0]
+        if banner not in KNOWN_BANNER_DATES:
+            log.warning("ur_rtde control script with unknown banner date %r; expected %s", banner, KNOWN_BANNER_DATES)
+        path = [
+            (m.group(1), np.array([float(x) for x in m.group(3).split(",")]), float(m.group(5)), float(m.group(4)))
+            for m in _PATH_LINE.finditer(text)
+        ]
+        if any(kind == "movep" for kind, _, _, _ in path):
+            log.error("movep in a path is not emulated; it runs as movel")
+        offsets = {int(x) for x in _OFFSET.findall(text)}
+        offset = max(offsets) if offsets else 0
+        with self.lock:
             if self.safety_mode != SAFETY_NORMAL or self.robot_mode != ROBOT_MODE_RUNNING:
                 msg = (
                     f"script not started: robot not ready (robot_mode {self.robot_mode}, "
@@ -235,20 +246,11 @@ class EmulatedController:
                 log.error(msg)
                 self.events.append(msg)
                 return
-            path = [
-                (m.group(1), np.array([float(x) for x in m.group(3).split(",")]), float(m.group(5)), float(m.group(4)))
-                for m in _PATH_LINE.finditer(text)
-            ]
-            for kind, _, _, _ in path:
-                if kind == "movep":
-                    log.error("movep in a path is not emulated; it runs as movel")
-            offsets = {int(x) for x in _OFFSET.findall(text)}
-            offset = max(offsets) if offsets else 0
             self.program = Program("rtde_control", banner, path, offset)
             self.watchdog_period = 0.0
             self.out_int[offset + 0] = 1  # signal_ready()
             self.events.append(f"control script started (banner {banner}, {len(path)} path entries)")
-            log.info("ur_rtde control script started (banner %s, %d path entries)", banner, len(path))
+        log.info("ur_rtde control script started (banner %s, %d path entries)", banner, len(path))
 
     # ------------------------------------------------------------------ faults and dashboard actions
     def stop_program(self, reason: str) -> None:

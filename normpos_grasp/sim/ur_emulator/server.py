@@ -482,6 +482,14 @@ class UREmulator:
 
     # ------------------------------------------------------------------ the 500 Hz loop
     def _control_loop(self) -> None:
+        if self.options.rt_priority > 0:
+            try:
+                os.sched_setscheduler(
+                    threading.get_native_id(), os.SCHED_FIFO, os.sched_param(self.options.rt_priority)
+                )
+                log.info("control loop runs with SCHED_FIFO priority %d", self.options.rt_priority)
+            except (OSError, AttributeError) as exc:
+                log.warning("cannot use real-time scheduling (%s); the 2 ms period may jitter under load", exc)
         period = self.options.period_s
         next_t = time.monotonic()
         last = next_t
