@@ -80,7 +80,7 @@ class FitOptions:
     exact_iterations: int = 4
     scale_iterations: int = 8
     n_refine: int = 3
-    n_flip_variants: int = 2
+    n_flip_variants: int = 4
     fine_trim: float = 0.95
     scale_rmse_gain: float = 0.97
     ransac_iterations: int = 600
@@ -92,7 +92,7 @@ class FitOptions:
     min_inlier_ratio: float = 0.75
     min_consistency: float = 0.8
     max_rmse_m: float = 0.002
-    min_coverage: float = 0.5
+    min_coverage: float = 0.8
     min_coverage_no_depth: float = 0.3
     max_free_space_violation: float = 0.08
     ambiguity_ratio: float = 0.95

@@ -121,10 +121,14 @@ def evaluate(
         nearest = _window_min(depth_m, uv, inside, FREE_SPACE_WINDOW_PX)
         see_through = nearest - pv[:, 2] > np.maximum(3.0 * tol_z, 0.01)
         violating = inside & np.isfinite(nearest) & see_through & ~grazing
+        # camera-facing template surface where the sensor returned nothing within the window: unexplained
+        # (a real part reflects; dropouts are thin), counted at half weight
+        missing = inside & ~np.isfinite(nearest) & ~grazing
         supported = known & (np.abs(diff) <= tol_z)
-        denom = max(int((known & ~occluded).sum()), 1)
+        # pixels without a depth reading are not evidence for the template: they count as unsupported
+        denom = max(int((inside & ~occluded).sum()), 1)
         coverage = float(supported.sum()) / denom
-        fsv = float(violating.sum()) / max(int((known & ~grazing).sum()), 1)
+        fsv = float(violating.sum() + 0.5 * missing.sum()) / max(int((inside & ~grazing).sum()), 1)
         occ_share = float(occluded.sum()) / n_vis
     else:
         world_v = pv @ invert_pose(cff)[:3, :3].T + invert_pose(cff)[:3, 3]
@@ -151,7 +155,7 @@ def _combine(inlier_ratio: float, rmse: float, coverage: float, fsv: float, tol:
     if not np.isfinite(rmse):
         return 0.0
     fit = float(np.exp(-0.5 * (rmse / max(tol, 1e-6)) ** 2))
-    return float(np.clip(inlier_ratio * (0.5 + 0.5 * fit) * np.sqrt(min(1.0, coverage / 0.8)) * (1.0 - fsv) ** 2, 0, 1))
+    return float(np.clip(inlier_ratio * (0.5 + 0.5 * fit) * min(1.0, coverage / 0.9) ** 2 * (1.0 - fsv) ** 2, 0, 1))
 
 
 SMOOTH_K = 16
