@@ -7,9 +7,10 @@ part leaves, everything else lies where physics left it) and repeats until the b
 no feasible grasp, or `max_consecutive_failures` picks in a row failed. Everything is seeded from
 (config.seed, scene_index): the same call gives the same records on any machine and worker layout.
 
-Failure causes of a pick (first that applies): 'segmentation_miss' (the chosen instance covers no true part
-with IoU >= `match_iou`), 'no_feasible_grasp' (the planner found none while parts remained), 'wrong_fit' (the
-physics failed and the fitted pose is off the true one by more than `wrong_fit_m`), 'collision' (the hand hit
+Failure causes of a pick (first that applies): 'segmentation_miss' (no instance found, or the chosen instance
+covers no true part with IoU >= `match_iou`), 'wrong_fit' (no template fit was accepted, or the physics failed
+and the fitted pose is off the true one by more than `wrong_fit_m`), 'no_feasible_grasp' (accepted fits but
+the planner found no grasp), 'collision' (the hand hit
 something), 'physics_drop' (missed, dropped or slipped).
 """
 
@@ -234,7 +235,14 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         pipeline_ms = (time.perf_counter() - t0) * 1e3
         visib = np.asarray(frame.visib_fractions, dtype=np.float64)
         if plan.status != "ok" or plan.chosen is None:
-            cause = "segmentation_miss" if not instances else "no_feasible_grasp"
+            reason = _no_grasp_reason(plan.counts)
+            if not instances:
+                cause, reason = "segmentation_miss", "the segmenter found no instance"
+            elif not any(f.accepted for f in fits):
+                rejected = sorted({f.reason.split(";")[0] for f in fits if f.reason})[:2]
+                cause, reason = "wrong_fit", "no template fit accepted: " + "; ".join(rejected)
+            else:
+                cause = "no_feasible_grasp"
             records.append(
                 _record(
                     scene_index,
@@ -250,7 +258,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                     len(templates),
                     pipeline_ms,
                     0.0,
-                    _no_grasp_reason(plan.counts),
+                    reason,
                 )
             )
             break
