@@ -40,7 +40,8 @@ class DemoOptions:
     """Demo settings. parts: parts dropped into the bin; max_picks: loop turns; sensor: depth-noise preset;
     segmenter: 'model' (bundled ONNX), 'depth' (model-free) or 'gt' (the synthetic truth masks); use_emulator:
     try the loopback UR controller first; emulator_host: 127.0.0.x address for it; arrive_tol_rad: a move is
-    complete when every joint is this close to its goal, rad (the issue's 1e-3 rad execution tolerance)."""
+    complete when every joint is this close to its goal, rad (the issue's 1e-3 rad execution tolerance);
+    part_names: library parts to draw from (empty: all)."""
 
     cell: str = "ur5e_bin_parallel"
     seed: int = 0
@@ -51,6 +52,7 @@ class DemoOptions:
     use_emulator: bool = True
     emulator_host: str = "127.0.0.1"
     arrive_tol_rad: float = 1e-3
+    part_names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,7 +155,7 @@ def run_demo(
     step("loading the cell")
     cell = resolve_cell(opts.cell)
     step(f"dropping {opts.parts} parts into the bin (physics)")
-    source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor)
+    source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor, parts=opts.part_names)
     segmenter, seg_kind = choose_segmenter(opts.segmenter, source)
     from normpos_grasp.sim.parts import default_part_library
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -71,6 +71,8 @@ class PickRecord:
 class SyntheticBinSource:
     """A bin of `count` parts in `cell`, rendered through the cell's camera with a sensor model.
 
+    parts: names of the library parts to draw from (empty: all); sensor: depth-noise preset.
+
     Picks are replayed in MuJoCo (`validate_physics`) against the true poses; a held part leaves the bin.
     """
 
@@ -82,12 +84,13 @@ class SyntheticBinSource:
         sensor: str = "d435",
         library: list[Template] | None = None,
         validate_physics: bool = True,
+        parts: Sequence[str] = (),
     ) -> None:
         from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene
         from normpos_grasp.sim.sensor import sensor_preset
 
         self.cell = cell
-        self.layout = compose_cell_scene(cell, count, seed, library)
+        self.layout = compose_cell_scene(cell, count, seed, library, parts)
         self.camera = cell_camera(cell, sensor)
         self.sensor = sensor_preset(sensor)
         self.rng = np.random.default_rng(seed)

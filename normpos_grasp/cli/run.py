@@ -58,6 +58,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic bin")
     p.add_argument("--sensor", default="d435", help="depth-noise preset of the synthetic bin")
+    p.add_argument("--parts", default="", help="comma-separated part names for the synthetic bin (default: all)")
     p.add_argument(
         "--no-home",
         action="store_true",
@@ -110,7 +111,8 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
         if count < 1:
             raise InputError(f"--source synthetic:N needs at least one part, got {count}")
         library = list(load_library(args.models)) if args.models else default_part_library()
-        source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library)
+        names = tuple(n for n in (args.parts or "").split(",") if n)
+        source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library, parts=names)
         kind = args.segmenter or "gt"
         if kind == "gt":
             segmenter: Any = source.ground_truth_segmenter()
@@ -125,8 +127,12 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
             raise InputError("--segmenter gt needs ground truth: use a BOP or synthetic source")
         if args.models is None and cell.templates_path is None:
             raise InputError("no template library: pass --models or set `templates` in the cell file")
-        library = list(load_library(args.models or cell.templates_path))
-        return RealSenseSource(cell.world_from_camera), library, make_segmenter(kind), "realsense"
+        camera_source = RealSenseSource(cell.world_from_camera)
+        try:
+            return camera_source, list(load_library(args.models or cell.templates_path)), make_segmenter(kind), "camera"
+        except BaseException:
+            camera_source.close()
+            raise
     path = Path(text)
     if not path.is_dir():
         raise InputError(f"--source {text!r} is neither a folder, 'synthetic[:N]' nor 'realsense'")
