@@ -17,17 +17,25 @@ NORMAL_COS = 0.35
 
 
 def correspond(
+    prep: PreparedTemplate, y: FloatArray, ny: FloatArray, *, exact: bool
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Closest normal-compatible model sample: point-to-plane residual (P,), distance (P,), normal (P, 3)."""
+    r, d, n, _ = correspond_points(prep, y, ny, exact=exact)
+    return r, d, n
+
+
+def correspond_points(
     prep: PreparedTemplate,
     y: FloatArray,
     ny: FloatArray,
     *,
     exact: bool,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Closest normal-compatible model sample for object-frame points.
 
     y, ny: (P, 3) points and their (measured) normals in the object frame.
     Returns residual (P,) point-to-plane distance, dist (P,) point-to-point distance (inf when none),
-    model normal (P, 3).
+    model normal (P, 3) and model point (P, 3).
     """
     bins = normal_bins(ny)
     if exact:
@@ -53,8 +61,9 @@ def correspond(
         has = (inside > 0) & ok
         d = np.where(has, np.linalg.norm(y - prep.samples[sel], axis=-1), np.inf)
     n = prep.normals[sel]
-    r = np.einsum("pd,pd->p", y - prep.samples[sel], n)
-    return r, d, n
+    m = prep.samples[sel]
+    r = np.einsum("pd,pd->p", y - m, n)
+    return r, d, n, m
 
 
 def icp(
@@ -72,6 +81,7 @@ def icp(
     max_corr_start: float,
     trim: float = 0.85,
     exact_last: int = 0,
+    point_weight: float = 0.05,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Refine (H, 4, 4) `object_from_frame` poses and (H,) scales on (P, 3) points/normals.
 
@@ -79,6 +89,7 @@ def icp(
     shrinks geometrically from `max_corr_start` to 3 thr; correspondences come from the distance grid
     except with `exact` or in the last `exact_last` iterations (KD-tree, normal-compatible); residuals
     above the `trim` quantile are dropped and the rest Huber-weighted.
+    point_weight: weight of an added point-to-point term (fixes motions within a single visible plane).
     Returns poses, scales and the (H,) inlier fraction at the last iteration.
     """
     poses = poses.copy()
@@ -98,10 +109,11 @@ def icp(
         y = (np.einsum("hij,pj->hpi", rot, pts) + poses[:, None, :3, 3]) / scales[:, None, None]
         ny = np.einsum("hij,pj->hpi", rot, nrm)
         use_exact = exact or it >= iterations - exact_last
-        r, d, n = correspond(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=use_exact)
+        r, d, n, m = correspond_points(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=use_exact)
         r = r.reshape(h, p)
         d = d.reshape(h, p)
         n = n.reshape(h, p, 3)
+        m = m.reshape(h, p, 3)
         valid = d < gate
         absr = np.abs(r)
         frac = (valid & (absr < thr[None])).mean(axis=1)
@@ -122,6 +134,22 @@ def icp(
         jw = jac * w[..., None]
         a = jw.transpose(0, 2, 1) @ jac
         b = -np.einsum("hpi,hp->hi", jw, r)
+        if point_weight > 0:
+            # a light point-to-point term pins the in-plane motions point-to-plane leaves free (one flat face)
+            e = y - m  # (h, p, 3)
+            jp = np.zeros((h, p, 3, dof))
+            jp[..., 0, 1] = y[..., 2]
+            jp[..., 0, 2] = -y[..., 1]
+            jp[..., 1, 0] = -y[..., 2]
+            jp[..., 1, 2] = y[..., 0]
+            jp[..., 2, 0] = y[..., 1]
+            jp[..., 2, 1] = -y[..., 0]
+            jp[..., 0, 3] = jp[..., 1, 4] = jp[..., 2, 5] = 1.0
+            if fit_scale:
+                jp[..., 6] = -(y - c)
+            wp = w * point_weight
+            a += np.einsum("hpki,hp,hpkj->hij", jp, wp, jp)
+            b -= np.einsum("hpki,hp,hpk->hi", jp, wp, e)
         a += np.eye(dof)[None] * 1e-9
         if fit_scale:
             a[:, 6, 6] += prior

@@ -118,13 +118,14 @@ def evaluate(
         occluded = known & (diff < -tol_z)
         # see-through test on the nearest valid depth in a small window: robust to depth edges that are
         # misaligned by a pixel or two (stereo and Kinect depth both shift silhouettes)
-        nearest = _window_min(depth_m, uv, inside, FREE_SPACE_WINDOW_PX)
+        nearest, closest = _window_stats(depth_m, uv, inside, pv[:, 2], FREE_SPACE_WINDOW_PX)
         see_through = nearest - pv[:, 2] > np.maximum(3.0 * tol_z, 0.01)
         violating = inside & np.isfinite(nearest) & see_through & ~grazing
         # camera-facing template surface where the sensor returned nothing within the window: unexplained
         # (a real part reflects; dropouts are thin), counted at half weight
         missing = inside & ~np.isfinite(nearest) & ~grazing
-        supported = known & (np.abs(diff) <= tol_z)
+        # support: some depth within the window agrees (silhouettes of real depth shift by a pixel or two)
+        supported = inside & (closest <= tol_z)
         # pixels without a depth reading are not evidence for the template: they count as unsupported
         denom = max(int((inside & ~occluded).sum()), 1)
         coverage = float(supported.sum()) / denom
@@ -181,12 +182,15 @@ def _consistency(pts: FloatArray, r: FloatArray, near: BoolArray, thr: FloatArra
     return float(ok.mean())
 
 
-def _window_min(depth: FloatArray, uv: np.ndarray, inside: BoolArray, r: int) -> FloatArray:
-    """Nearest valid depth within +-r pixels of each (u, v) (inf where none or outside)."""
-    out = np.full(len(uv), np.inf)
+def _window_stats(
+    depth: FloatArray, uv: np.ndarray, inside: BoolArray, z: FloatArray, r: int
+) -> tuple[FloatArray, FloatArray]:
+    """Per (u, v) within +-r pixels: the nearest valid depth and the smallest |depth - z| (inf where none)."""
+    nearest = np.full(len(uv), np.inf)
+    closest = np.full(len(uv), np.inf)
     idx = np.flatnonzero(inside)
     if len(idx) == 0:
-        return out
+        return nearest, closest
     h, w = depth.shape
     offs = np.arange(-r, r + 1)
     du, dv = np.meshgrid(offs, offs)
@@ -194,8 +198,9 @@ def _window_min(depth: FloatArray, uv: np.ndarray, inside: BoolArray, r: int) ->
     vv = np.clip(uv[idx, 1][:, None] + dv.ravel()[None], 0, h - 1)
     vals = depth[vv, uu]
     vals = np.where((vals > 0) & np.isfinite(vals), vals, np.inf)
-    out[idx] = vals.min(axis=1)
-    return out
+    nearest[idx] = vals.min(axis=1)
+    closest[idx] = np.min(np.abs(vals - z[idx, None]), axis=1)
+    return nearest, closest
 
 
 def _cell_keys(pc: FloatArray, cell: float) -> FloatArray:
