@@ -111,8 +111,8 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
         if count < 1:
             raise InputError(f"--source synthetic:N needs at least one part, got {count}")
         library = list(load_library(args.models)) if args.models else default_part_library()
-        names = tuple(n for n in (args.parts or "").split(",") if n)
-        source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library, parts=names)
+        wanted = tuple(n for n in (args.parts or "").split(",") if n)
+        source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library, parts=wanted)
         kind = args.segmenter or "gt"
         if kind == "gt":
             segmenter: Any = source.ground_truth_segmenter()
@@ -205,6 +205,8 @@ def run(args: argparse.Namespace) -> int:
             if out is not None:
                 scene.export_glb(out / "scene.glb")  # `normpos-grasp view --report OUT` follows it
 
+        done_so_far: list[PickRecord] = []
+
         def on_pick(record: PickRecord) -> None:
             doc = record.plan_json or {}
             target = (doc.get("target") or {}).get("template", "-")
@@ -221,8 +223,11 @@ def run(args: argparse.Namespace) -> int:
             if record.status == "no_feasible_grasp" and cands.get("rejected_by_reason"):
                 reasons = sorted(cands["rejected_by_reason"].items(), key=lambda kv: -kv[1])
                 print("  rejected: " + ", ".join(f"{k} {v}" for k, v in reasons), flush=True)
-            if out is not None and record.plan_json is not None:
-                (out / f"plan_{record.index + 1:02d}.json").write_text(json.dumps(record.plan_json, indent=1))
+            if out is not None:
+                if record.plan_json is not None:
+                    _write_json(out / f"plan_{record.index + 1:02d}.json", record.plan_json)
+                done_so_far.append(record)  # run.json grows pick by pick (`normpos-grasp view` shows it)
+                _write_json(out / "run.json", _run_summary(cell.name, args, source_kind, mode, done_so_far, t_start))
 
         records = run_cell_loop(
             cell,
@@ -248,19 +253,9 @@ def run(args: argparse.Namespace) -> int:
         if callable(close):
             close()
     statuses = [r.status for r in records]
-    summary = {
-        "cell": cell.name,
-        "source": str(args.source),
-        "source_kind": source_kind,
-        "mode": mode,
-        "picks": [
-            {"pick": r.index + 1, "status": r.status, "check": r.check, "fault": r.fault, "timings_ms": r.timings_ms}
-            for r in records
-        ],
-        "wall_time_s": round(time.perf_counter() - t_start, 3),
-    }
+    summary = _run_summary(cell.name, args, source_kind, mode, records, t_start)
     if out is not None:
-        (out / "run.json").write_text(json.dumps(summary, indent=1))
+        _write_json(out / "run.json", summary)
     done = sum(1 for s in statuses if s in ("picked", "dry_run"))
     print(
         f"{mode}: {done} of {len(records)} turns planned{' and picked' if args.execute else ''}; "
@@ -271,6 +266,29 @@ def run(args: argparse.Namespace) -> int:
     if done == 0 or "pick_failed" in statuses:
         return 1
     return 0
+
+
+def _run_summary(
+    cell: str, args: argparse.Namespace, source_kind: str, mode: str, records: list[Any], t_start: float
+) -> dict[str, Any]:
+    return {
+        "cell": cell,
+        "source": str(args.source),
+        "source_kind": source_kind,
+        "mode": mode,
+        "picks": [
+            {"pick": r.index + 1, "status": r.status, "check": r.check, "fault": r.fault, "timings_ms": r.timings_ms}
+            for r in records
+        ],
+        "wall_time_s": round(time.perf_counter() - t_start, 3),
+    }
+
+
+def _write_json(path: Path, data: Any) -> None:
+    """Write JSON atomically (a reader never sees half a file)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    tmp.replace(path)
 
 
 def _dry_state(result: Any, mode: str) -> dict[str, Any]:
