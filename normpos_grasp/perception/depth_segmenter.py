@@ -43,6 +43,8 @@ class DepthSegmenterOptions:
         depth_jump_m: neighbours (at working resolution) whose depths differ by more are separated, metres;
             depth_jump_rel: plus this fraction of the depth.
         crease_angle_deg: neighbours whose normals differ by more, at a concave crease, are separated, degrees.
+        steep_faces: a depth step counts as a discontinuity only by how much it exceeds its neighbouring steps
+            (keeps steep faces of one part together); False: by its size alone.
         smooth_depth_m: range sigma of the bilateral filter applied before normals, metres.
         normal_step: normals from central differences over +-normal_step working pixels.
         min_pixels: smallest instance, full-resolution pixels.
@@ -62,6 +64,7 @@ class DepthSegmenterOptions:
     depth_jump_m: float = 0.006
     depth_jump_rel: float = 0.005
     crease_angle_deg: float = 35.0
+    steep_faces: bool = False
     smooth_depth_m: float = 0.01
     normal_step: int = 2
     min_pixels: int = 150
@@ -224,7 +227,13 @@ class DepthSegmenter:
         for axis in (0, 1):
             a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
             b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
-            jump = np.abs(zm[a] - zm[b]) > jump_thr[a]
+            step = np.abs(np.diff(zm, axis=axis))
+            # a step is a discontinuity when the neighbouring steps do not explain it (steep faces have runs of
+            # similar steps, an occluding border has one isolated step)
+            pad = ((1, 1), (0, 0)) if axis == 0 else ((0, 0), (1, 1))
+            sp = np.pad(step, pad, mode="edge")
+            around = np.maximum(sp[:-2], sp[2:]) if axis == 0 else np.maximum(sp[:, :-2], sp[:, 2:])
+            jump = (step - around > jump_thr[a]) if o.steep_faces else (step > jump_thr[a])
             jump &= valid[a] & valid[b]
             edge[a] |= jump
             edge[b] |= jump
