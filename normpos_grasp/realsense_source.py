@@ -49,10 +49,22 @@ def _import_rs() -> Any:
 
 
 def camera_from_intrinsics(intr: Any, depth_scale_m: float, world_from_camera: FloatArray | None) -> Camera:
-    """A `Camera` from a pyrealsense2 `intrinsics` object (fx, fy, ppx, ppy, width, height, coeffs)."""
+    """A `Camera` from a pyrealsense2 `intrinsics` object (fx, fy, ppx, ppy, width, height, model, coeffs).
+
+    Coefficients are kept for the (modified) Brown-Conrady model, OpenCV's forward model; others (inverse
+    Brown-Conrady, F-theta) cannot be expressed in `Camera.distortion` and are dropped with a warning.
+    """
     k = np.array([[intr.fx, 0.0, intr.ppx], [0.0, intr.fy, intr.ppy], [0.0, 0.0, 1.0]], dtype=np.float64)
     coeffs = np.asarray(list(intr.coeffs), dtype=np.float64)
-    if coeffs.size not in (4, 5, 8, 12):
+    model = str(getattr(intr, "model", "")).rsplit(".", 1)[-1]
+    forward = model in ("brown_conrady", "modified_brown_conrady", "")
+    if coeffs.size not in (4, 5, 8, 12) or not forward:
+        if np.any(coeffs != 0.0):
+            log.warning(
+                "RealSense distortion model %r is not OpenCV's forward model; its coefficients are ignored "
+                "(calibrate the intrinsics with `normpos-grasp calibrate` if they matter)",
+                model,
+            )
         coeffs = np.zeros(5)
     return Camera(k, int(intr.width), int(intr.height), coeffs, float(depth_scale_m), world_from_camera)
 

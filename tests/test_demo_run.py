@@ -181,3 +181,27 @@ def test_run_rejects_an_unknown_source(tmp_path: Path, capsys: pytest.CaptureFix
     code = main(["run", "--cell", "ur5e_bin_parallel", "--source", str(tmp_path / "nope"), "--robot", "127.0.0.1"])
     assert code == 2
     assert "neither a folder" in capsys.readouterr().err
+
+
+def test_realsense_intrinsics_become_a_camera() -> None:
+    from types import SimpleNamespace
+
+    from normpos_grasp.realsense_source import camera_from_intrinsics
+
+    intr = SimpleNamespace(
+        fx=615.0,
+        fy=614.0,
+        ppx=321.5,
+        ppy=242.0,
+        width=640,
+        height=480,
+        model="distortion.brown_conrady",
+        coeffs=[0.1, -0.2, 0.001, 0.002, 0.05],
+    )
+    pose = np.eye(4)
+    pose[:3, 3] = [0.5, 0.0, 0.9]
+    camera = camera_from_intrinsics(intr, 0.001, pose)
+    assert camera.K[0, 0] == 615.0 and camera.K[1, 2] == 242.0 and (camera.width, camera.height) == (640, 480)
+    assert np.allclose(camera.distortion, intr.coeffs) and np.allclose(camera.world_from_camera, pose)
+    inverse = SimpleNamespace(**{**vars(intr), "model": "distortion.inverse_brown_conrady"})
+    assert np.all(camera_from_intrinsics(inverse, 0.001, None).distortion == 0.0)  # not OpenCV's forward model
