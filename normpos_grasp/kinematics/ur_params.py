@@ -204,25 +204,31 @@ def ur_params(name: str) -> URParams:
         raise RobotModelError(f"unknown UR model {name!r}; known: {', '.join(UR_PARAMS)}") from None
 
 
+def dh_link(params: URParams, i: int, theta: ArrayLike) -> FloatArray:
+    """Standard DH transform (..., 4, 4) of joint i (0-based) from frame i to frame i + 1 at angles theta (...,)."""
+    th = np.asarray(theta, dtype=np.float64)
+    ct, st = np.cos(th), np.sin(th)
+    ca, sa = np.cos(DH_ALPHA[i]), np.sin(DH_ALPHA[i])
+    link = np.zeros(th.shape + (4, 4))
+    link[..., 0, 0] = ct
+    link[..., 0, 1] = -st * ca
+    link[..., 0, 2] = st * sa
+    link[..., 0, 3] = params.a[i] * ct
+    link[..., 1, 0] = st
+    link[..., 1, 1] = ct * ca
+    link[..., 1, 2] = -ct * sa
+    link[..., 1, 3] = params.a[i] * st
+    link[..., 2, 1] = sa
+    link[..., 2, 2] = ca
+    link[..., 2, 3] = params.d[i]
+    link[..., 3, 3] = 1.0
+    return link
+
+
 def dh_forward_kinematics(params: URParams, q: ArrayLike) -> FloatArray:
     """base_from_flange (..., 4, 4) from the DH table for joint angles q (..., 6) in radians (vectorised)."""
     qs = np.asarray(q, dtype=np.float64)
     pose = np.broadcast_to(np.eye(4), qs.shape[:-1] + (4, 4)).copy()
     for i in range(6):
-        ct, st = np.cos(qs[..., i]), np.sin(qs[..., i])
-        ca, sa = np.cos(DH_ALPHA[i]), np.sin(DH_ALPHA[i])
-        link = np.zeros(qs.shape[:-1] + (4, 4))
-        link[..., 0, 0] = ct
-        link[..., 0, 1] = -st * ca
-        link[..., 0, 2] = st * sa
-        link[..., 0, 3] = params.a[i] * ct
-        link[..., 1, 0] = st
-        link[..., 1, 1] = ct * ca
-        link[..., 1, 2] = -ct * sa
-        link[..., 1, 3] = params.a[i] * st
-        link[..., 2, 1] = sa
-        link[..., 2, 2] = ca
-        link[..., 2, 3] = params.d[i]
-        link[..., 3, 3] = 1.0
-        pose = pose @ link
+        pose = pose @ dh_link(params, i, qs[..., i])
     return pose

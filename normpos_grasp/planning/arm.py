@@ -15,8 +15,9 @@ import numpy as np
 
 from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.kinematics.analytic_ik import SINGULAR_SIN, dh_lengths, ik_batch
 from normpos_grasp.kinematics.shapes import ARM_LINKS, arm_collision_shapes
-from normpos_grasp.kinematics.ur_params import DH_ALPHA, URParams, dh_forward_kinematics, ur_params
+from normpos_grasp.kinematics.ur_params import DH_ALPHA, URParams, dh_forward_kinematics, dh_link, ur_params
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray
 
 _COS_ALPHA = tuple(math.cos(a) for a in DH_ALPHA)
@@ -84,7 +85,7 @@ class ArmModel:
         pose = np.broadcast_to(self.world_from_base, qs.shape[:-1] + (4, 4)).copy()
         out[..., 0, :, :] = pose
         for i in range(6):
-            pose = pose @ _dh_link(self.params, i, qs[..., i])
+            pose = pose @ dh_link(self.params, i, qs[..., i])
             out[..., i + 1, :, :] = pose
         return out
 
@@ -153,25 +154,6 @@ class ArmModel:
         return [f[s.joint] @ s.link_from_shape for s in self.shapes]
 
 
-def _dh_link(params: URParams, i: int, theta: FloatArray) -> FloatArray:
-    ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(DH_ALPHA[i]), np.sin(DH_ALPHA[i])
-    link = np.zeros(np.shape(theta) + (4, 4))
-    link[..., 0, 0] = ct
-    link[..., 0, 1] = -st * ca
-    link[..., 0, 2] = st * sa
-    link[..., 0, 3] = params.a[i] * ct
-    link[..., 1, 0] = st
-    link[..., 1, 1] = ct * ca
-    link[..., 1, 2] = -ct * sa
-    link[..., 1, 3] = params.a[i] * st
-    link[..., 2, 1] = sa
-    link[..., 2, 2] = ca
-    link[..., 2, 3] = params.d[i]
-    link[..., 3, 3] = 1.0
-    return link
-
-
 def _kinematics_shapes(params: URParams) -> tuple[LinkShape, ...]:
     """The kinematics stage's link primitives (`arm_collision_shapes`) re-expressed in DH frames.
 
@@ -183,59 +165,24 @@ def _kinematics_shapes(params: URParams) -> tuple[LinkShape, ...]:
         if i == 0:
             pose = np.asarray(shape.link_from_shape, dtype=np.float64)
         else:
-            fixed = _dh_link(params, i - 1, np.zeros(()))  # Tz(d) Tx(a) Rx(alpha) at q = 0
+            fixed = dh_link(params, i - 1, np.zeros(()))  # Tz(d) Tx(a) Rx(alpha) at q = 0
             pose = invert_pose(fixed) @ np.asarray(shape.link_from_shape, dtype=np.float64)
         out.append(LinkShape(shape.link, shape.kind, tuple(float(v) for v in shape.size), pose, i))
     return tuple(out)
 
 
 def _ur_ik(params: URParams, base_from_flange: FloatArray) -> tuple[FloatArray, BoolArray]:
-    """Analytic IK of the UR family (Hawkins 2013 closed form), vectorised over poses and branches: (N, 8, 6)
-    angles in (-pi, pi] and (N, 8) existence flags. Branch k: shoulder sign bit 2, wrist bit 1, elbow bit 0."""
-    t = base_from_flange
-    d4, d6 = params.d[3], params.d[5]
-    a2, a3 = params.a[1], params.a[2]
-    s_sign, w_sign, e_sign = _BRANCH_SIGNS
-    rot, pos = t[:, :3, :3], t[:, :3, 3]
-    p05 = pos - d6 * rot[:, :, 2]
-    r05 = np.hypot(p05[:, 0], p05[:, 1])
-    ratio = d4 / np.maximum(r05, 1e-12)
-    phi = np.arccos(np.clip(ratio, -1.0, 1.0))
-    th1 = (np.arctan2(p05[:, 1], p05[:, 0]) + np.pi / 2)[:, None] + s_sign * phi[:, None]  # (N, 8)
-    s1, c1 = np.sin(th1), np.cos(th1)
-    c5 = (pos[:, 0, None] * s1 - pos[:, 1, None] * c1 - d4) / d6
-    th5 = w_sign * np.arccos(np.clip(c5, -1.0, 1.0))
-    s5 = np.sin(th5)
-    singular = np.abs(s5) < 1e-9
-    safe_s5 = np.where(singular, 1.0, s5)
-    r00, r01, r10, r11 = rot[:, 0, 0, None], rot[:, 0, 1, None], rot[:, 1, 0, None], rot[:, 1, 1, None]
-    th6 = np.where(singular, 0.0, np.arctan2((-r01 * s1 + r11 * c1) / safe_s5, (r00 * s1 - r10 * c1) / safe_s5))
-    t01 = _dh_link(params, 0, th1)
-    t56 = _dh_link(params, 4, th5) @ _dh_link(params, 5, th6)
-    t14 = invert_batch(t01) @ t[:, None] @ invert_batch(t56)  # (N, 8, 4, 4)
-    p13 = t14[..., :3, 3] - d4 * t14[..., :3, 1]
-    norm2 = np.einsum("nki,nki->nk", p13, p13)
-    c3 = (norm2 - a2 * a2 - a3 * a3) / (2 * a2 * a3)
-    th3 = e_sign * np.arccos(np.clip(c3, -1.0, 1.0))
-    norm = np.sqrt(np.maximum(norm2, 1e-24))
-    th2 = -np.arctan2(p13[..., 1], -p13[..., 0]) + np.arcsin(np.clip(a3 * np.sin(th3) / norm, -1.0, 1.0))
-    t34 = invert_batch(_dh_link(params, 1, th2) @ _dh_link(params, 2, th3)) @ t14
-    th4 = np.arctan2(t34[..., 1, 0], t34[..., 0, 0])
-    q = np.stack([th1, th2, th3, th4, th5, th6], axis=-1)
-    ok = (ratio <= 1.0)[:, None] & (np.abs(c5) <= 1.0 + 1e-12) & (np.abs(c3) <= 1.0 + 1e-12) & ~singular
+    """All 8 analytic IK branches of (N, 4, 4) flange poses (kinematics.analytic_ik.ik_batch): (N, 8, 6) angles
+    in (-pi, pi] and (N, 8) existence flags; wrist-singular branches count as not existing (q6 is arbitrary there).
+    Branch k: shoulder bit 2, wrist bit 1, elbow bit 0."""
+    q, ok = ik_batch(dh_lengths(params), base_from_flange)
+    ok &= np.abs(np.sin(np.nan_to_num(q[..., 4]))) >= SINGULAR_SIN
+    q = np.where(ok[..., None], q, 0.0)
     q = (q + np.pi) % (2 * np.pi) - np.pi
-    # Numerical guard: keep only branches whose FK reproduces the pose (drops near-singular garbage).
+    # numerical guard: keep only branches whose FK reproduces the pose (drops near-singular garbage)
     fk = dh_forward_kinematics(params, q)
-    err = np.abs(fk[..., :3, :] - t[:, None, :3, :]).max(axis=(-2, -1))
-    ok &= err < 1e-7
+    ok &= np.abs(fk[..., :3, :] - base_from_flange[:, None, :3, :]).max(axis=(-2, -1)) < 1e-7
     return q, ok
-
-
-_BRANCH_SIGNS = (
-    np.array([1.0, 1, 1, 1, -1, -1, -1, -1]),
-    np.array([1.0, 1, -1, -1, 1, 1, -1, -1]),
-    np.array([1.0, -1, 1, -1, 1, -1, 1, -1]),
-)
 
 
 def invert_batch(poses: FloatArray) -> FloatArray:
