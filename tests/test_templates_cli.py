@@ -17,7 +17,9 @@ def test_estimate_writes_bop_results(tmp_path: Path) -> None:
     from normpos_grasp.sim.dataset import write_bop_dataset
     from normpos_grasp.sim.scene import SceneOptions
 
-    split = write_bop_dataset(tmp_path / "ds", 1, 1, scene_options=SceneOptions(count=4), split="test", seed=3)
+    split = write_bop_dataset(
+        tmp_path / "ds", 1, 1, parts=["cube", "bracket"], scene_options=SceneOptions(count=3), split="test", seed=3
+    )
     out = tmp_path / "results.csv"
     rc = main(
         ["estimate", str(split), "--models", str(tmp_path / "ds" / "models"), "--out", str(out), "--segmenter", "gt"]
