@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -99,8 +99,8 @@ def test_bad_arguments() -> None:
         run_batch(SimulationConfig(cell_path=str(CELL)), 1, workers=0)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("ray") is not None, reason="ray is installed")
-def test_ray_missing_raises_install_hint() -> None:
+def test_ray_missing_raises_install_hint(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now fails as if the extra were not installed
     with pytest.raises(MissingDependency, match="scale"):
         run_batch(SimulationConfig(cell_path=str(CELL)), 1, ray_address="local")
 

@@ -26,12 +26,17 @@ def _plane_view(sensor: str, z: float) -> tuple[Rendering, object]:
     return render(PLANE, cam), cam
 
 
-@pytest.mark.parametrize("sensor", ["d435", "d455", "zed2", "zivid"])
-@pytest.mark.parametrize("z", [0.5, 1.0, 2.0])
+IN_RANGE = [
+    (sensor, z)
+    for sensor in ("d435", "d455", "zed2", "zivid")
+    for z in (0.5, 1.0, 2.0)
+    if sensor_preset(sensor).min_range_m < z < sensor_preset(sensor).max_range_m
+]
+
+
+@pytest.mark.parametrize(("sensor", "z"), IN_RANGE)
 def test_plane_rms_matches_formula(sensor: str, z: float) -> None:
     model = sensor_preset(sensor)
-    if not model.min_range_m < z < model.max_range_m:
-        pytest.skip(f"{z} m is outside the {sensor} range")
     ideal, cam = _plane_view(sensor, z)
     _, depth = model.apply(ideal, cam, np.random.default_rng(3))
     valid = depth > 0
