@@ -380,19 +380,22 @@ class CollisionWorld:
         early exit in front of the fcl checks."""
         if self.tool is None:
             raise InputError("tool_box_hits needs a tool: call set_tool first")
-        boxes = [
-            e.box
+        els = [
+            e
             for e in self.elements.values()
             if e.category == category and e.box is not None and e.name not in self._disabled
         ]
         poses = np.asarray(world_from_tcp, dtype=np.float64).reshape(-1, 4, 4)
         n = len(poses)
         hits = np.zeros(n, dtype=bool)
-        if not boxes:
+        if not els:
             return hits
-        bc = np.stack([b[0][:3, 3] for b in boxes])[None]
-        br = np.stack([b[0][:3, :3] for b in boxes])[None]
-        bh = np.stack([b[1] for b in boxes])[None]
+        boxes = [e.box for e in els if e.box is not None]
+        bc = np.stack([b[0][:3, 3] for b in boxes])
+        br = np.stack([b[0][:3, :3] for b in boxes])
+        bh = np.stack([b[1] for b in boxes])
+        blo = np.stack([e.lo for e in els])
+        bhi = np.stack([e.hi for e in els])
         openings = np.broadcast_to(np.asarray(opening_m, dtype=np.float64), (n,))
         for s in self.tool.shapes:
             if s.kind != "box":
@@ -401,17 +404,17 @@ class CollisionWorld:
             if s.moves:
                 local[:, 0, 3] += s.moves * (openings / 2.0 + s.size[0] / 2.0)
             world = poses @ local
-            hits |= np.any(
-                obb_overlap(
-                    world[:, None, :3, 3],
-                    world[:, None, :3, :3],
-                    np.asarray(s.size, dtype=np.float64)[None, None] / 2.0,
-                    bc,
-                    br,
-                    bh,
-                ),
-                axis=1,
-            )
+            half = np.asarray(s.size, dtype=np.float64) / 2.0
+            # bounding sphere vs each box's AABB first: the exact test only runs on pairs that may touch
+            c = world[:, None, :3, 3]
+            gap = np.maximum(blo[None] - c, 0.0) + np.maximum(c - bhi[None], 0.0)
+            near = np.einsum("nbi,nbi->nb", gap, gap) <= float(half @ half)
+            near &= ~hits[:, None]
+            ii, bb = np.nonzero(near)
+            if len(ii) == 0:
+                continue
+            over = obb_overlap(world[ii, :3, 3], world[ii, :3, :3], half[None], bc[bb], br[bb], bh[bb])
+            hits[ii[over]] = True
         return hits
 
     def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:

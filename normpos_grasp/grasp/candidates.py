@@ -159,6 +159,45 @@ def snap_down(world_from_tcp: FloatArray, axes_world: list[tuple[FloatArray, Flo
     return _about(axis, point, angle) @ pose
 
 
+def snap_down_batch(
+    world_from_tcp: FloatArray, axes_world: list[tuple[FloatArray, FloatArray]]
+) -> tuple[FloatArray, FloatArray]:
+    """`snap_down` for poses (N, 4, 4) at once: (snapped poses (N, 4, 4), (N,) bool where a snapped pose exists)."""
+    poses = np.asarray(world_from_tcp, dtype=np.float64)
+    n = len(poses)
+    out = poses.copy()
+    if n == 0 or not axes_world:
+        return out, np.zeros(n, dtype=bool)
+    down = np.array([0.0, 0.0, -1.0])
+    a = poses[:, :3, 2]
+    if len(axes_world) >= 2:  # sphere-like: rotate about a @ down through the centre
+        point = axes_world[0][1]
+        angle = np.arccos(np.clip(a @ down, -1.0, 1.0))
+        axis = np.cross(a, down)
+        norm = np.linalg.norm(axis, axis=1)
+        axis = np.where(norm[:, None] < 1e-9, np.array([1.0, 0.0, 0.0]), axis / np.maximum(norm, 1e-12)[:, None])
+        ok = angle >= np.deg2rad(3)
+    else:
+        axis1, point = axes_world[0]
+        a_perp = a - axis1[None] * (a @ axis1)[:, None]
+        t = down - axis1 * (down @ axis1)
+        na, nt = np.linalg.norm(a_perp, axis=1), float(np.linalg.norm(t))
+        if nt < 1e-6:
+            return out, np.zeros(n, dtype=bool)
+        u = a_perp / np.maximum(na, 1e-12)[:, None]
+        t = t / nt
+        angle = np.arctan2(np.cross(u, t) @ axis1, u @ t)
+        ok = (na >= 1e-6) & (np.abs(angle) >= np.deg2rad(3))
+        axis = np.broadcast_to(axis1, (n, 3))
+    x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
+    zero = np.zeros(n)
+    k = np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], 1)
+    rot = np.eye(3)[None] + np.sin(angle)[:, None, None] * k + (1.0 - np.cos(angle))[:, None, None] * (k @ k)
+    out[:, :3, :3] = rot @ poses[:, :3, :3]
+    out[:, :3, 3] = np.einsum("nij,nj->ni", rot, poses[:, :3, 3] - point) + point
+    return out, ok
+
+
 def candidates_for_object(
     target: int,
     template: Template,
@@ -177,7 +216,11 @@ def candidates_for_object(
     if not grasps:
         return out
     world_poses = world_from_object @ np.stack([pose for *_, pose in grasps])
-    for (g, source, gid, _), world_from_tcp in zip(grasps, world_poses, strict=True):
+    if axes_world and opts.snap_to_vertical:
+        snapped, has_snap = snap_down_batch(world_poses, axes_world)
+    else:
+        snapped, has_snap = world_poses, np.zeros(len(world_poses), dtype=bool)
+    for k, ((g, source, gid, _), world_from_tcp) in enumerate(zip(grasps, world_poses, strict=True)):
         quality = float(np.clip(g.priority if source == "synthesized" else 1.0, 0.0, 1.0))
         out.append(
             GraspCandidate(
@@ -194,10 +237,8 @@ def candidates_for_object(
                 priority=float(g.priority) if source == "annotated" else 0.0,
             )
         )
-        if axes_world and opts.snap_to_vertical:
-            snapped = snap_down(world_from_tcp, axes_world)
-            if snapped is not None:
-                out.append(replace(out[-1], grasp_id=f"{gid}@down", world_from_tcp=snapped))
+        if has_snap[k]:
+            out.append(replace(out[-1], grasp_id=f"{gid}@down", world_from_tcp=snapped[k]))
     return out
 
 
