@@ -312,7 +312,8 @@ class GuardedDriver:
 
         The trajectory is checked whole before the first sample is sent (limits, workspace, speed and acceleration
         caps, and its start must be the current joints). While streaming, the controller-side watchdog stops the
-        program if this process stalls; a client-side deadline check stops the arm if the stream falls behind.
+        program if this process stalls. A late tick slows the trajectory's clock instead of skipping ahead, so the servo
+        target never jumps; a gap longer than `watchdog_s` stops the arm with a DriverTimeout.
         """
         self._require_ready()
         t = np.asarray(times, dtype=np.float64).reshape(-1)
@@ -332,20 +333,31 @@ class GuardedDriver:
         self.commands_sent += 1
         self._backend_servo_begin()
         t0 = time.monotonic()
+        slowed_s = 0.0
         try:
             for k, target in enumerate(samples):
                 deadline = t0 + k * period
                 now = time.monotonic()
-                if now - deadline > max(0.1, 10 * period):
+                lag = now - deadline
+                if lag > self.options.watchdog_s:
                     self._backend_stop(self.options.stop_decel)
                     raise self._latch(
-                        DriverTimeout(f"stream fell {now - deadline:.3f} s behind schedule at sample {k}; arm stopped")
+                        DriverTimeout(
+                            f"stream stalled {lag:.3f} s at sample {k} (> the {self.options.watchdog_s} s watchdog); "
+                            "arm stopped"
+                        )
                     )
-                if deadline > now:
-                    time.sleep(deadline - now)
+                if lag > period:
+                    # Late: run the trajectory slower rather than jump ahead; targets stay one period apart.
+                    t0 += lag
+                    slowed_s += lag
+                elif lag < 0:
+                    time.sleep(-lag)
                 st = self._backend_state()
                 self._check_state(st, during=f"stream sample {k}", stop=True)
                 self._backend_servo(target, period)
+            if slowed_s > 0:
+                log.info("trajectory stream ran %.3f s slower than planned (late ticks)", slowed_s)
         finally:
             if self._fault is None:
                 self._settle_servo(samples[-1])
