@@ -40,6 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lr", type=float, default=4e-3, help="peak learning rate")
     p.add_argument("--input-size", type=_size, default=(192, 256), help="network input WxH (multiples of 32)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
+    p.add_argument("--init-from", type=Path, default=None, help="start from this .pt state dict (fine-tuning)")
     p.add_argument("--time-limit-min", type=float, default=0.0, help="stop training after this many minutes (0: none)")
     p.set_defaults(handler=run)
 
@@ -63,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
         threads=args.threads,
         seed=args.seed,
         time_limit_s=args.time_limit_min * 60.0,
+        init_from=str(args.init_from) if args.init_from is not None else "",
     )
     path = train(Path(data), args.out, options, log=lambda msg: tqdm.write(msg))
     print(f"model written to {path}")

@@ -36,6 +36,7 @@ logger = logging.getLogger(__name__)
 BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "normpos_seg.onnx"
 PAD_VALUE = 114  # letterbox grey, as ultralytics
 DEPTH_METADATA_KEY = "normpos_depth"
+CONF_METADATA_KEY = "normpos_conf_threshold"  # the model's recommended threshold, used when no options are given
 
 
 @dataclass(frozen=True)
@@ -279,7 +280,8 @@ class OnnxSegmenter:
     Args:
         model_path: the .onnx file; None loads the bundled model trained on this project's synthetic scenes.
         class_names: overrides the names from the side file or metadata; must have nc entries.
-        options: decoder settings.
+        options: decoder settings; None: defaults, with the confidence threshold the model recommends in its
+            metadata (key 'normpos_conf_threshold') where it has one.
     """
 
     def __init__(
@@ -337,6 +339,13 @@ class OnnxSegmenter:
             nc = outputs[0].shape[1] - 4 - self.num_prototypes
             if nc < 1:
                 raise ModelFormatError(f"output0 has {outputs[0].shape[1]} rows, fewer than 4 + 1 + nm")
+        if options is None and CONF_METADATA_KEY in meta:
+            try:
+                self.options = OnnxSegmenterOptions(conf_threshold=float(meta[CONF_METADATA_KEY]))
+            except ValueError as exc:
+                raise ModelFormatError(
+                    f"metadata '{CONF_METADATA_KEY}' is not a number: {meta[CONF_METADATA_KEY]!r}"
+                ) from exc
         self.class_names = self._load_names(class_names, meta, nc)
         self.metadata = dict(meta)
 

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from normpos_grasp.errors import DatasetError, MissingDependency
-from normpos_grasp.perception.onnx_segmenter import DEPTH_METADATA_KEY, DepthChannelSpec
+from normpos_grasp.perception.onnx_segmenter import CONF_METADATA_KEY, DEPTH_METADATA_KEY, DepthChannelSpec
 from normpos_grasp.perception.train.data import CLASS_NAMES, pack_sample, read_shards, synth_samples, write_shard
 
 if TYPE_CHECKING:
@@ -38,7 +38,8 @@ class TrainOptions:
     num_protos: prototype masks; steps: optimiser steps; batch: images per step; lr: peak AdamW learning rate
     (cosine decay, 200 warm-up steps); weight_decay: AdamW decay; threads: torch CPU threads; seed: RNG seed;
     time_limit_s: stop early after this many seconds of training (0 = no limit; a run that hits it is recorded as
-    such in train.json and is reproducible only up to the step it reached).
+    such in train.json and is reproducible only up to the step it reached); init_from: a .pt state dict to start
+    from (fine-tuning a previous run) instead of random weights.
     """
 
     input_hw: tuple[int, int] = (192, 256)
@@ -51,6 +52,7 @@ class TrainOptions:
     threads: int = 2
     seed: int = 0
     time_limit_s: float = 0.0
+    init_from: str = ""
 
 
 def _torch() -> object:
@@ -121,6 +123,7 @@ def _targets(
 def _giou(p: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """GIoU of (P, 4) xyxy tensors."""
     import torch
+
     ix1, iy1 = torch.max(p[:, 0], t[:, 0]), torch.max(p[:, 1], t[:, 1])
     ix2, iy2 = torch.min(p[:, 2], t[:, 2]), torch.min(p[:, 3], t[:, 3])
     inter = (ix2 - ix1).clamp(min=0) * (iy2 - iy1).clamp(min=0)
@@ -153,6 +156,8 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
     logger.info("training on %d frames, %d instances", len(xs), sum(len(b) for b in bs))
     ih, iw = options.input_hw
     net = SegNet(xs.shape[1], len(CLASS_NAMES), options.num_protos, options.width)
+    if options.init_from:
+        net.load_state_dict(torch.load(options.init_from, map_location="cpu"))
     stride = net.stride
     centres_t = anchor_centres(ih // stride, iw // stride, stride)
     centres = centres_t.numpy()
@@ -270,8 +275,9 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
     return export_onnx(net, out_dir / "normpos_seg.onnx", options)
 
 
-def export_onnx(net: object, path: Path, options: TrainOptions) -> Path:
-    """Export `net` (a SegNet) in the YOLOv8-seg layout with class names and the depth spec in the metadata."""
+def export_onnx(net: object, path: Path, options: TrainOptions, conf_threshold: float = 0.3) -> Path:
+    """Export `net` (a SegNet) in the YOLOv8-seg layout with class names, the depth spec and the recommended
+    confidence threshold in the metadata."""
     import onnx
     import torch
 
@@ -301,6 +307,7 @@ def export_onnx(net: object, path: Path, options: TrainOptions) -> Path:
         "author": "normpos-grasp",
         "description": "normpos-grasp bundled YOLACT-style RGB-D part segmenter, trained on synthetic scenes",
         "train_seed": str(options.seed),
+        CONF_METADATA_KEY: str(conf_threshold),
     }
     for k, v in meta.items():
         entry = model.metadata_props.add()
