@@ -231,26 +231,29 @@ def decode(
     top, left = int(round(lb.top * sy - 0.1)), int(round(lb.left * sx - 0.1))
     bottom, right = int(round((lb.top + lb.new_h) * sy + 0.1)), int(round((lb.left + lb.new_w) * sx + 0.1))
     prob = prob[:, top:bottom, left:right]
-    masks = np.empty((len(keep), h0, w0), dtype=bool)
-    chunk = 256
-    for s in range(0, len(keep), chunk):
-        stack = np.ascontiguousarray(prob[s : s + chunk].transpose(1, 2, 0))
-        up = cv2.resize(stack, (w0, h0), interpolation=cv2.INTER_LINEAR)
-        if up.ndim == 2:
-            up = up[:, :, None]
-        masks[s : s + chunk] = (up > options.mask_threshold).transpose(2, 0, 1)
-    # boxes to frame pixels, then crop each mask to its box
+    # boxes to frame pixels
     boxes = (boxes - np.array([lb.left, lb.top, lb.left, lb.top], dtype=np.float64)) / lb.scale
     boxes[:, [0, 2]] = boxes[:, [0, 2]].clip(0, w0)
     boxes[:, [1, 3]] = boxes[:, [1, 3]].clip(0, h0)
+    # each mask: the bilinear resize of the (unpadded) prototype mask to the frame, evaluated only inside its box
+    # (cv2.resize's pixel-centre mapping, computed for the box window with warpAffine), then thresholded
+    masks = np.zeros((len(keep), h0, w0), dtype=bool)
+    ph, pw = prob.shape[1:]
+    ax, ay = pw / w0, ph / h0
     for k, (x1, y1, x2, y2) in enumerate(boxes):
         xa, ya = int(np.floor(x1)), int(np.floor(y1))
         xb, yb = int(np.ceil(x2)), int(np.ceil(y2))
-        m = masks[k]
-        m[:ya] = False
-        m[yb:] = False
-        m[:, :xa] = False
-        m[:, xb:] = False
+        if xb <= xa or yb <= ya:
+            continue
+        m = np.array([[ax, 0.0, (xa + 0.5) * ax - 0.5], [0.0, ay, (ya + 0.5) * ay - 0.5]])
+        win = cv2.warpAffine(
+            np.ascontiguousarray(prob[k]),
+            m,
+            (xb - xa, yb - ya),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        masks[k, ya:yb, xa:xb] = win > options.mask_threshold
     return Detections(boxes=boxes, scores=scores, classes=cls, masks=masks)
 
 
