@@ -105,7 +105,7 @@ def ransac_plane(
         return np.array([0.0, 0.0, -1.0]), 0.0, 0
     normals = normals[ok] / norm[ok, None]
     ds = -np.einsum("ij,ij->i", normals, tri[ok, 0])
-    dist = np.abs(sub @ normals.T + ds[None, :])  # (S, I)
+    dist = np.abs(np.einsum("sj,ij->si", sub, normals) + ds[None, :])  # (S, I); einsum avoids BLAS threads
     support = (dist < sub_tol[:, None]).sum(axis=0)
     best = int(np.argmax(support))
     n, d = normals[best], float(ds[best])

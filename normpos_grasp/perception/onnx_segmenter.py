@@ -157,8 +157,9 @@ def preprocess(
     if depth_spec is not None:
         if depth_m is None:
             raise InputError("this model needs a depth image (4 input channels), got none")
-        dc = depth_channel(depth_m, depth_spec)
-        dc_small = cv2.resize(dc, (lb.new_w, lb.new_h), interpolation=cv2.INTER_NEAREST)
+        # nearest-neighbour resampling commutes with the per-pixel channel transform, so resample first (cheaper)
+        d_small = cv2.resize(np.asarray(depth_m, np.float32), (lb.new_w, lb.new_h), interpolation=cv2.INTER_NEAREST)
+        dc_small = depth_channel(d_small, depth_spec)
         out[0, 3] = cv2.copyMakeBorder(dc_small, lb.top, bottom, lb.left, right, cv2.BORDER_CONSTANT, value=0.0)
     return out, lb
 
@@ -223,7 +224,8 @@ def decode(
     keep = nms_classwise(boxes, scores, cls, options.iou_threshold)[: options.max_detections]
     boxes, scores, cls = boxes[keep], scores[keep], cls[keep]
     coeffs = pred[4 + nc :, sel[keep]].T.astype(np.float32)  # (k, nm)
-    logits = coeffs @ protos[0].reshape(nm, -1).astype(np.float32)
+    # einsum, not BLAS: a (k, 32) x (32, n) product is too small for BLAS threads, which stall on a loaded CPU
+    logits = np.einsum("kc,cn->kn", coeffs, protos[0].reshape(nm, -1).astype(np.float32))
     prob = (1.0 / (1.0 + np.exp(-logits))).reshape(-1, mh, mw)
     # remove the letterbox padding at prototype resolution, then resize to the frame
     ih, iw = input_hw
