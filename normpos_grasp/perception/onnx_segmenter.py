@@ -119,7 +119,7 @@ def letterbox_geometry(image_hw: tuple[int, int], input_hw: tuple[int, int]) -> 
     return Letterbox(scale=r, left=int(round(dw - 0.1)), top=int(round(dh - 0.1)), new_w=new_w, new_h=new_h)
 
 
-def depth_channel(depth_m: FloatArray, spec: DepthChannelSpec) -> Float32Array:
+def depth_channel(depth_m: np.ndarray, spec: DepthChannelSpec) -> Float32Array:
     """(H, W) float32 depth channel as described by `spec`; zeros where depth is invalid (0, NaN, inf)."""
     d = np.asarray(depth_m, dtype=np.float32)
     valid = np.isfinite(d) & (d > 0)
