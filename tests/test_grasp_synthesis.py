@@ -31,14 +31,26 @@ def test_box_parallel_pairs_and_face_suction() -> None:
     grasps = synthesize(t)
     parallel = [g for g in grasps if g.scheme == "parallel"]
     suction = [g for g in grasps if g.scheme == "suction"]
-    assert len(parallel) == 12  # 3 closing axes x 2 approach axes x 2 sides
+    nominal = [g for g in parallel if "_t" not in g.id and "_s" not in g.id]
+    assert len(nominal) == 12  # 3 closing axes x 2 approach axes x 2 sides
+    # the 0.06 side is long enough to slide along: pinches across the other two axes come 3x; every pinch also
+    # comes tilted by +-20 degrees about its closing axis
+    n_slid = 2 * 2  # (closing, approach) = (y, z) or (z, y), two sides each: two off-centre slides each
+    assert len(parallel) == (12 + n_slid * 2) * (1 + 2 * len(OPTS.tilt_angles_rad))
     for g in parallel:
         pose = g.object_from_tcp
         assert _is_rotation(pose)
         i = int(np.argmax(np.abs(pose[:3, 0])))
-        assert abs(pose[i, 0]) == pytest.approx(1.0)  # jaws close along a box axis
+        assert abs(pose[i, 0]) == pytest.approx(1.0)  # jaws close along a box axis, tilted or not
         assert g.opening_m == pytest.approx(ext[i] + 2 * OPTS.clearance_m)
         assert t.mesh.contains([pose[:3, 3]])[0]  # TCP inside the part at grasp depth
+    for g in nominal:
+        i = int(np.argmax(np.abs(g.object_from_tcp[:3, 2])))
+        assert abs(g.object_from_tcp[i, 2]) == pytest.approx(1.0)  # nominal: approach along a box axis
+    tilted = [g for g in parallel if "_t" in g.id]
+    for g in tilted:
+        a = g.object_from_tcp[:3, 2]
+        assert np.sort(np.abs(a))[-1] == pytest.approx(np.cos(OPTS.tilt_angles_rad[0]))
     # suction: faces at least cup-sized; the TCP lies on the face, approach into the part
     for g in suction:
         pose = g.object_from_tcp

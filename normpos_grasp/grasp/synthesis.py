@@ -27,6 +27,9 @@ class SynthesisOptions:
     antipodal_samples: surface samples for irregular parts. approach_m / retreat_m: straight-line lengths, m.
     seed: RNG seed for surface sampling (results are reproducible). finger_tip_m: how far the jaw tips reach past
     the TCP along the approach, m (set from the tool, so grasps do not push the tips through the part's far side).
+    tilt_angles_rad: box pinches are also offered tilted by +- each angle about the closing axis (the jaws stay on
+    the same faces; the hand leans away from a wall or a neighbour), rad. slide_min_m: a box side at least this long
+    along the jaw's width direction also gets pinches a quarter of its length off centre on both sides, m.
     """
 
     clearance_m: float = 0.01
@@ -39,6 +42,8 @@ class SynthesisOptions:
     retreat_m: float = 0.1
     seed: int = 0
     finger_tip_m: float = 0.0
+    tilt_angles_rad: tuple[float, ...] = (0.35,)
+    slide_min_m: float = 0.06
 
     def depth(self, extent: float) -> float:
         """TCP depth below the approached face for a part `extent` deep along the approach, m: at most half the
@@ -64,6 +69,12 @@ def tcp_frame(approach: FloatArray, closing: FloatArray, position: FloatArray) -
     return pose
 
 
+def _rot_x(angle: float) -> FloatArray:
+    """(3, 3) rotation by `angle` rad about x (the TCP's closing axis)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
 def _perpendicular(axis: FloatArray) -> tuple[FloatArray, FloatArray]:
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(axis, helper)
@@ -85,7 +96,10 @@ def synthesize(
         out = _sphere(template, opts)
     elif shape == "plate":
         out = _plate(template, opts)
-    else:  # irregular, bracket, ring
+    elif shape == "ring":  # antipodal rim pinches, plus pinches across the outer diameter and across the faces
+        outer = [g for g in _cylinder(template, opts) if g.id.startswith(("cyl_top", "cyl_caps"))]
+        out = outer + _antipodal(template, opts) + _facet_suction(template, opts)
+    else:  # irregular, bracket
         out = _antipodal(template, opts) + _facet_suction(template, opts)
     return [g for g in out if g.scheme in kinds]
 
@@ -137,20 +151,30 @@ def _box(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
                 continue
             k = 3 - i - j
             depth = o.depth(float(ext[j]))
+            slides = [0.0] if ext[k] < o.slide_min_m else [0.0, -ext[k] / 4.0, ext[k] / 4.0]
             for s in (1.0, -1.0):
                 approach = s * rot[:, j]
-                pos = c - approach * (ext[j] / 2.0 - depth)
                 quality = 0.6 + 0.4 * min(ext[k], 0.05) / 0.05 - 0.2 * ext[i] / max(ext.max(), 1e-9)
-                out.append(
-                    _g(
-                        f"box_pair_c{i}_a{j}{'+' if s > 0 else '-'}",
-                        "parallel",
-                        tcp_frame(approach, rot[:, i], pos),
-                        ext[i] + 2 * o.clearance_m,
-                        quality,
-                        o,
-                    )
-                )
+                for n_slide, slide in enumerate(slides):
+                    pos = c - approach * (ext[j] / 2.0 - depth) + rot[:, k] * slide
+                    base = tcp_frame(approach, rot[:, i], pos)
+                    gid = f"box_pair_c{i}_a{j}{'+' if s > 0 else '-'}" + (f"_s{n_slide}" if n_slide else "")
+                    q = quality - (0.1 if n_slide else 0.0)
+                    out.append(_g(gid, "parallel", base, ext[i] + 2 * o.clearance_m, q, o))
+                    for ang in o.tilt_angles_rad:
+                        for sign in (1.0, -1.0):
+                            tilted = base.copy()
+                            tilted[:3, :3] = base[:3, :3] @ _rot_x(sign * ang)
+                            out.append(
+                                _g(
+                                    f"{gid}_t{'+' if sign > 0 else '-'}{np.rad2deg(ang):.0f}",
+                                    "parallel",
+                                    tilted,
+                                    ext[i] + 2 * o.clearance_m,
+                                    q - 0.1 * ang,
+                                    o,
+                                )
+                            )
     for j in range(3):
         others = [m for m in range(3) if m != j]
         if min(ext[others]) < o.cup_diameter_m:

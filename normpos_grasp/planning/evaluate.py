@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -19,7 +19,7 @@ import numpy as np
 from normpos_grasp.geometry.transforms import invert_pose
 from normpos_grasp.grasp.candidates import GraspCandidate
 from normpos_grasp.planning.arm import ArmModel
-from normpos_grasp.typing import FloatArray
+from normpos_grasp.typing import FloatArray, IntArray
 
 if TYPE_CHECKING:
     from normpos_grasp.collision.world import CollisionWorld, Hit
@@ -37,7 +37,14 @@ class EvaluationOptions:
     the object are rejected as 'approach_angle'). contact_backoff_m: the tool is checked at the grasp pose moved
     back by this much along the approach (suction cups and jaw faces touch the target by design), m.
     max_feasible / max_feasible_per_target: stop the collision stage after this many feasible grasps (0: check all).
-    clearance: also test the tool grown by the world's clearance (feeds the ranking). Weights of the ranking
+    clearance: also test the tool grown by the world's clearance (feeds the ranking).
+    tip_margin_m: the tool at the grasp must also clear the cell's boxes when pushed this much further along the
+    approach (fitted poses are off by millimetres: fingertips keep this margin above the bin floor), m.
+    max_raise_m / raise_step_m: a parallel grasp whose fingers hit the cell (floor) at the grasp is raised back
+    along the approach in these steps up to this far, m, as long as the jaw tips still reach `min_contact_m` past
+    the part's approached face (m); the raised grasp replaces the candidate. opening_slack_m: a parallel grasp
+    whose opening (part width + synthesis clearance) exceeds the stroke by at most this much is opened to the full
+    stroke instead (less clearance beside the part; the collision checks still decide), m. Weights of the ranking
     score: quality, approach (vertical approach preferred), travel (joint distance from home, per rad),
     priority (template priority), clearance, height (higher objects first, per m).
     """
@@ -53,6 +60,11 @@ class EvaluationOptions:
     w_priority: float = 0.5
     w_clearance: float = 0.3
     w_height: float = 2.0
+    tip_margin_m: float = 0.003
+    max_raise_m: float = 0.016
+    raise_step_m: float = 0.002
+    min_contact_m: float = 0.005
+    opening_slack_m: float = 0.012
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,6 +167,7 @@ def evaluate_candidates(
     tool = world.tool
     if tool is None:
         raise ValueError("world has no tool: call world.set_tool first")
+    candidates = list(candidates)
     n = len(candidates)
     verdict: list[Evaluation | None] = [None] * n
     if n == 0:
@@ -181,6 +194,11 @@ def evaluate_candidates(
         verdict[i] = Evaluation(candidates[i], False, reason, pose, poses[i])
 
     # 1. vectorised screens
+    if tool.kind == "parallel" and opts.opening_slack_m > 0:
+        narrow = (openings > tool.stroke_m + 1e-9) & (openings <= tool.stroke_m + opts.opening_slack_m)
+        for j in np.flatnonzero(narrow):
+            candidates[int(j)] = replace(candidates[int(j)], opening_m=float(tool.stroke_m))
+            openings[int(j)] = tool.stroke_m
     for j in np.flatnonzero(approach[:, 2] > opts.max_approach_up):
         reject(int(j), "approach_angle", "grasp")
     if tool.kind == "parallel":
@@ -201,6 +219,22 @@ def evaluate_candidates(
     alive = np.array([v is None for v in verdict])
     idx = np.flatnonzero(alive)
     if len(idx):
+        # grasp depth adapted to the clearance below the part: fingertips stop tip_margin_m above the cell boxes
+        raised = _raise_grasps(idx, g, approach, openings, target_idx, targets, world, tool, opts)
+        for jr, new_g in raised.items():
+            c = candidates[jr]
+            candidates[jr] = replace(c, grasp_id=f"{c.grasp_id}@up", world_from_tcp=new_g)
+        if raised:
+            rows = np.array(sorted(raised))
+            g[rows] = np.stack([raised[int(j)] for j in rows])
+            poses[rows] = five_poses_batch(
+                g[rows],
+                np.array([candidates[int(j)].approach_m for j in rows]),
+                entry_z,
+                lift_m,
+                np.maximum(g[rows, 2, 3] - lowest[target_idx[rows]], 0.0),
+                entry_clearance_m,
+            )
         for p_idx in (2, 1, 0):
             hits = world.tool_box_hits(poses[idx, p_idx], openings[idx])
             for j in idx[hits]:
@@ -277,6 +311,64 @@ def evaluate_candidates(
     counts = Counter(v.reason for v in final if not v.feasible)
     ranked = tuple(sorted(feasible, key=lambda e: -e.score))
     return EvaluationResult(tuple(final), ranked, dict(counts))
+
+
+def _raise_grasps(
+    idx: IntArray,
+    g: FloatArray,
+    approach: FloatArray,
+    openings: FloatArray,
+    target_idx: FloatArray,
+    targets: list[Target],
+    world: CollisionWorld,
+    tool: object,
+    opts: EvaluationOptions,
+) -> dict[int, FloatArray]:
+    """Grasp poses (4, 4) by candidate index for the parallel grasps among `idx` whose tool, pushed `tip_margin_m`
+    further along the approach, overlaps a cell box at the grasp while a pose raised back along the approach by at
+    most `max_raise_m` is clear and still reaches `min_contact_m` into the part. Unchanged candidates are left out
+    (a hit with no clear raise is rejected by the cell test that follows)."""
+    out: dict[int, FloatArray] = {}
+    if getattr(tool, "kind", "") != "parallel" or opts.max_raise_m <= 0 or opts.raise_step_m <= 0:
+        return out
+    tip = float(getattr(tool, "finger_depth_m", 0.0))
+
+    def shifted(rows: IntArray, back: float) -> FloatArray:
+        p = g[rows].copy()
+        p[:, :3, 3] += approach[rows] * (opts.tip_margin_m - back)
+        return p
+
+    hit = world.tool_box_hits(shifted(idx, 0.0), openings[idx])
+    todo = idx[hit]
+    if len(todo) == 0:
+        return out
+    # depth of the jaw tips past the approached face of the part (its smallest extent along the approach)
+    face = np.empty(len(todo))
+    for t in np.unique(target_idx[todo]):
+        rows = target_idx[todo] == t
+        tgt = targets[int(t)]
+        verts = np.asarray(tgt.mesh.vertices, dtype=np.float64) @ tgt.world_from_object[:3, :3].T  # type: ignore[attr-defined]
+        verts = verts + tgt.world_from_object[:3, 3]
+        face[rows] = (approach[todo[rows]] @ verts.T).min(axis=1)
+    tip_depth = np.einsum("ni,ni->n", g[todo, :3, 3], approach[todo]) + tip - face
+    n_steps = int(np.floor(opts.max_raise_m / opts.raise_step_m + 1e-9))
+    for k in range(1, n_steps + 1):
+        back = k * opts.raise_step_m
+        ok = tip_depth - back >= opts.min_contact_m
+        rows = todo[ok]
+        if len(rows) == 0:
+            break
+        clear = np.logical_not(world.tool_box_hits(shifted(rows, back), openings[rows]))
+        for j in rows[clear]:
+            p = g[j].copy()
+            p[:3, 3] -= approach[j] * back
+            out[int(j)] = p
+        keep = np.ones(len(todo), dtype=bool)
+        keep[np.flatnonzero(ok)[clear]] = False
+        todo, tip_depth = todo[keep], tip_depth[keep]
+        if len(todo) == 0:
+            break
+    return out
 
 
 def _unwrap_branches(q: FloatArray, arm: ArmModel) -> FloatArray:
