@@ -69,9 +69,20 @@ class RtdeDriver(GuardedDriver):
         self._still_window = 0.02
         self._streaming = False
         self._link_lost = False
+        self._abandoned: list[Any] = []  # control interfaces left after a link loss (see _backend_link_lost)
 
     # ------------------------------------------------------------------ backend
+    def _release_abandoned(self) -> None:
+        """Disconnect control interfaces set aside after a link loss (frees the controller's input registers)."""
+        while self._abandoned:
+            control = self._abandoned.pop()
+            try:
+                control.disconnect()
+            except RuntimeError as exc:
+                log.warning("disconnecting the control interface after the link loss: %s", exc)
+
     def _backend_connect(self) -> None:
+        self._release_abandoned()
         rtde_control, rtde_receive, rtde_io = _import_rtde()
         try:
             self._r = rtde_receive.RTDEReceiveInterface(self.host)
@@ -98,6 +109,7 @@ class RtdeDriver(GuardedDriver):
         )
 
     def _backend_disconnect(self) -> None:
+        self._release_abandoned()
         # Order matters with ur_rtde 1.6.5: the control interface first (disconnect() also ends its internal
         # reconnect loop after a dropped link); the IO interface aborts the process if disconnected on a dead
         # socket, so it is reconnected first when its link is gone.
@@ -135,13 +147,12 @@ class RtdeDriver(GuardedDriver):
                 log.warning("link lost: dashboard stop -> %s", f.readline().decode(errors="replace").strip())
         except OSError as exc:
             log.error("link lost and the dashboard is unreachable too (%s): the arm may still be moving", exc)
-        # ur_rtde 1.6.5's control interface reconnects on its own and then keeps re-uploading its script in a loop
-        # (and can crash the process); end it now. A fresh one is made by resume().
+        # ur_rtde 1.6.5's control interface reconnects on its own after a dropped link, re-uploading its script in a
+        # loop, and calling into it right after a hard drop (disconnect() included) can crash the process. Set it
+        # aside so this fault reaches the caller first; resume() or disconnect() ends it (_release_abandoned). The
+        # client's own reconnect thread may still crash the process: see docs/execution.md.
         if self._c is not None:
-            try:
-                self._c.disconnect()
-            except RuntimeError as exc:
-                log.warning("disconnecting the control interface after the link loss: %s", exc)
+            self._abandoned.append(self._c)
             self._c = None
 
     def _backend_state(self) -> ArmState:
