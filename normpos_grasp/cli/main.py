@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import logging
 import sys
 from collections.abc import Sequence
@@ -43,10 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        module_name = f"normpos_grasp.cli.{name}"
-        if importlib.util.find_spec(module_name) is None:  # command not built yet in this checkout
-            continue
-        importlib.import_module(module_name).register(sub)
+        importlib.import_module(f"normpos_grasp.cli.{name}").register(sub)
     return parser
 
 
