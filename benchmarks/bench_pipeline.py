@@ -31,6 +31,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,6 +66,8 @@ class Tally:
     centroid_mm: list[float] = field(default_factory=list)
     times: dict[str, list[float]] = field(default_factory=dict)
     frames: int = 0
+    objects: int = 0  # true parts in the frames (any visibility)
+    wrong_kinds: Counter[str] = field(default_factory=Counter)  # 'truth->fit' of wrong accepted fits
 
 
 def pose_errors(template: Template, est: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
@@ -136,6 +139,7 @@ def score_frame(sf: Any, result: Any, tally: Tally, diameters: dict[str, float])
     truth_centroids = true_visible_centroids(sf)
     cam = sf.frame.camera
     tally.frames += 1
+    tally.objects += len(templates)
     tally.instances += len(instances)
     tally.unmatched += len(instances) - len(matched)
     tally.eligible += int(eligible.sum())
@@ -151,6 +155,9 @@ def score_frame(sf: Any, result: Any, tally: Tally, diameters: dict[str, float])
                 )
                 ok = add < 0.1 * diameters[templates[part].name]
             tally.wrong_all += int(not ok)
+            if not ok:
+                truth = templates[part].name if part >= 0 else "nothing"
+                tally.wrong_kinds[f"{truth}->{fit.template.name}"] += 1
         if i not in matched or not eligible[part]:
             continue
         tally.detected += 1
@@ -216,6 +223,7 @@ def summary(t: Tally) -> dict[str, Any]:
         "centroid_mm_median": float(np.median(t.centroid_mm)) if t.centroid_mm else None,
         "centroid_mm_p90": float(np.percentile(t.centroid_mm, 90)) if t.centroid_mm else None,
         "time_ms_median": med,
+        "wrong_kinds": dict(t.wrong_kinds),
     }
 
 
@@ -226,7 +234,7 @@ def table(tallies: dict[str, Tally]) -> str:
     def row(label: str, fn: Any) -> None:
         rows.append((label, [fn(tallies[n]) for n in names]))
 
-    row("eligible objects", lambda t: str(t.eligible))
+    row("objects / eligible", lambda t: f"{t.objects} / {t.eligible}")
     row("detection (IoU >= 0.5)", lambda t: _pct(t.detected, t.eligible))
     row("class accuracy (detected)", lambda t: _pct(t.class_ok, t.detected))
     row("accepted fit (eligible)", lambda t: _pct(t.accepted, t.eligible))
@@ -313,6 +321,10 @@ def main() -> int:
         f"wall {time.perf_counter() - t_start:.0f} s ({n_obj} accepted fits scored)"
     )
     print(table(tallies))
+    for kind, t in tallies.items():
+        if t.wrong_kinds:
+            kinds = ", ".join(f"{k} x{n}" for k, n in t.wrong_kinds.most_common())
+            print(f"{kind}: wrong accepted (truth->fit): {kinds}")
     print(comparison(tallies))
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
