@@ -129,3 +129,29 @@ def test_flat_ring_pinched_across_its_outer_diameter(bin_cell: CellConfig) -> No
     c = plan.chosen.candidate
     assert c.opening_m > 0.06  # outside the ring, not a finger in the 36 mm hole
     assert _tip_lowest_z(bin_cell, c.world_from_tcp, c.opening_m) >= FLOOR_Z + 0.003 - 1e-6
+
+
+def test_configs_clear_is_conservative(bin_cell: CellConfig) -> None:
+    """The vectorised sphere pre-test never calls a configuration free that the exact check finds colliding, and
+    proves some free (random configurations around a bin with parts, holding one)."""
+    from normpos_grasp.planning.arm import ArmModel
+    from normpos_grasp.planning.plan import build_world
+
+    part = Template("b", "b", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
+    fits = [_fit(part, make_pose(None, [0.45 + 0.08 * k, 0.02 * k, FLOOR_Z + 0.015]), k + 1) for k in range(3)]
+    arm = ArmModel.from_name(bin_cell.robot_model, bin_cell.world_from_base)
+    world, targets, _ = build_world(bin_cell, fits, [], arm)
+    world.set_arm(arm)
+    world.set_tool(bin_cell.tool)
+    rng = np.random.default_rng(3)
+    home = np.asarray(bin_cell.home_q)
+    qs = home + rng.uniform(-1.2, 1.2, size=(300, 6))
+    for held in (False, True):
+        if held:
+            world.disable(targets[0].name)
+            world.attach(targets[0].name, targets[0].mesh, make_pose(None, [0.0, 0.0, 0.01]))  # type: ignore[arg-type]
+        clear = world.configs_clear(qs, 0.05)
+        exact = np.array([world.check_config(q, 0.05) is None for q in qs])
+        assert not np.any(clear & ~exact)
+        assert clear.any() and (~exact).any()
+    world.detach()

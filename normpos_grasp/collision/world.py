@@ -21,7 +21,7 @@ import fcl
 import numpy as np
 
 from normpos_grasp.errors import InputError
-from normpos_grasp.typing import ArrayLike, FloatArray
+from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray
 
 if TYPE_CHECKING:
     import trimesh
@@ -594,6 +594,55 @@ class CollisionWorld:
             finally:
                 self._tool_posed_by_config = False
         return hit
+
+    def configs_clear(self, qs: ArrayLike, opening_m: float = 0.0) -> BoolArray:
+        """(K,) bool for configurations qs (K, 6) rad: True where bounding spheres alone prove `check_config(q,
+        opening_m)` finds nothing (no arm, tool or held-object sphere touches an enabled element's box, no
+        self-collision pair's spheres touch). False means 'not proven': run `check_config`. One vectorised pass, so
+        dense edge checks pay fcl only near contacts."""
+        if self.arm is None or self.tool is None:
+            raise InputError("configs_clear needs set_arm and set_tool first")
+        q = np.asarray(qs, dtype=np.float64).reshape(-1, 6)
+        k = len(q)
+        if k == 0:
+            return np.zeros(0, dtype=bool)
+        if self._dirty or self._bounds_dirty:
+            if self._bounds_dirty and not self._dirty:
+                self._dirty = set(CATEGORIES)
+            self.update()
+        frames = self.arm.frames(q)  # (K, 7, 4, 4)
+        joints = np.array([s.joint for s in self.arm.shapes])
+        local_c = np.stack([np.asarray(s.link_from_shape, dtype=np.float64)[:3, 3] for s in self.arm.shapes])
+        f = frames[:, joints]  # (K, S, 4, 4)
+        arm_c = np.einsum("ksij,sj->ksi", f[..., :3, :3], local_c) + f[..., :3, 3]
+        world_from_tcp = frames[:, 6] @ self.tool.flange_from_tcp
+        local = self._tool_local.copy()
+        local[:, 0, 3] += self._tool_moves * (opening_m / 2.0 + self._tool_finger_half)
+        tool_c = np.einsum("kij,sj->ksi", world_from_tcp[:, :3, :3], local[:, :3, 3]) + world_from_tcp[:, None, :3, 3]
+        movers_c = [arm_c[:, 1:], tool_c]
+        movers_r = [self._arm_radii[1:], self._tool_radii]
+        if self._held is not None:
+            held = world_from_tcp @ self._held[2]
+            movers_c.append(held[:, None, :3, 3])
+            movers_r.append(np.array([self._held_radius]))
+        centres = np.concatenate(movers_c, axis=1)  # (K, M, 3)
+        radii = np.concatenate(movers_r)
+        clear = np.ones(k, dtype=bool)
+        if len(self._lo):
+            gap = np.maximum(self._lo[None, None] - centres[:, :, None], 0.0) + np.maximum(
+                centres[:, :, None] - self._hi[None, None], 0.0
+            )  # (K, M, E, 3)
+            d2 = np.einsum("kmei,kmei->kme", gap, gap)
+            clear &= ~np.any(d2 <= (radii * radii)[None, :, None], axis=(1, 2))
+        r = self._arm_radii
+        d = np.linalg.norm(arm_c[:, :, None] - arm_c[:, None], axis=-1) - (r[:, None] + r[None])
+        clear &= ~np.any((d <= 0) & self._pair_mask[None], axis=(1, 2))
+        low = self._low_links
+        extra_c = np.concatenate(movers_c[1:], axis=1)
+        extra_r = np.concatenate(movers_r[1:])
+        d = np.linalg.norm(arm_c[:, low][:, :, None] - extra_c[:, None], axis=-1) - (r[low][:, None] + extra_r[None])
+        clear &= ~np.any(d <= 0, axis=(1, 2))
+        return clear
 
     def which(self, world_from_tcp: ArrayLike, opening_m: float = 0.0) -> list[str]:
         """Names of the enabled elements the tool touches at `world_from_tcp` (for diagnostics; slower)."""

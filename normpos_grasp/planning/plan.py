@@ -31,7 +31,7 @@ from normpos_grasp.planning.evaluate import Evaluation, EvaluationOptions, Targe
 from normpos_grasp.planning.rrt import MotionOptions, plan_joint_motion
 from normpos_grasp.planning.timing import TimingOptions, Trajectory, time_parameterise
 from normpos_grasp.templates.model import TemplateFit
-from normpos_grasp.typing import FloatArray
+from normpos_grasp.typing import BoolArray, FloatArray
 
 logger = logging.getLogger(__name__)
 
@@ -381,6 +381,21 @@ def plan_from_candidates(
     )
 
 
+class _ConfigFree:
+    """Collision-free test of one configuration (the world as it stands, tool at `opening` m) for the joint-space
+    planner, with the vectorised sphere pre-test `clear_batch` for dense edge checks."""
+
+    def __init__(self, world: CollisionWorld, opening: float) -> None:
+        self.world = world
+        self.opening = opening
+
+    def __call__(self, q: FloatArray) -> bool:
+        return self.world.check_config(q, self.opening) is None
+
+    def clear_batch(self, qs: FloatArray) -> BoolArray:
+        return self.world.configs_clear(qs, self.opening)
+
+
 class _PathRejected(PlanningError):
     def __init__(self, message: str, reason: str) -> None:
         super().__init__(message)
@@ -437,7 +452,7 @@ def _place_motion(
     world: CollisionWorld,
     arm: ArmModel,
     tcp_from_flange: FloatArray,
-    free_held: Any,
+    free_held: _ConfigFree,
     opts: PlanOptions,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, PlaceSpec]:
     """Straight pre-place -> place (held) and place -> post-place (released) lines on the branch nearest `q_from`."""
@@ -457,7 +472,8 @@ def _place_motion(
         except _PathRejected as exc:
             last = exc
             continue
-        if not all(free_held(q) for q in seg_place[:-1]):
+        placing = seg_place[:-1][~world.configs_clear(seg_place[:-1], free_held.opening)]
+        if not all(free_held(q) for q in placing):
             last = _PathRejected(f"place {place.name!r}: collision placing", "place_collision")
             continue
         held = world.held_name, world._held
@@ -491,11 +507,8 @@ def _build_path(
     tcp_from_object = invert_pose(poses[2]) @ target.world_from_object
     opening = c.opening_m
 
-    def free_empty(q: FloatArray) -> bool:
-        return world.check_config(q, opening) is None
-
-    def free_held(q: FloatArray) -> bool:
-        return world.check_config(q, opening) is None
+    free_empty = _ConfigFree(world, opening)
+    free_held = free_empty  # the world's held object (attached or not) is part of every check
 
     world.detach()
     world.enable(target.name)
@@ -504,7 +517,8 @@ def _build_path(
     seg_pre, tcp_pre = _line(arm, tcp_from_flange, poses[1], poses[2], seg_entry[-1], b, opts)
     seg_lift, tcp_lift = _line(arm, tcp_from_flange, poses[2], poses[3], seg_pre[-1], b, opts)
     seg_exit, tcp_exit = _line(arm, tcp_from_flange, poses[3], poses[4], seg_lift[-1], b, opts)
-    for q in seg_entry[1:]:
+    clear = world.configs_clear(seg_entry[1:], opening)
+    for q in seg_entry[1:][~clear]:
         if not free_empty(q):
             raise _PathRejected("collision on the way into the bin", "path_collision")
     backoff = opts.evaluation.contact_backoff_m + opts.cartesian_step_m
@@ -523,11 +537,16 @@ def _build_path(
     world.attach(target.name, target.mesh, tcp_from_object)  # type: ignore[arg-type]
     try:
         lifted = tcp_lift - tcp_lift[0]
-        for q, dz in zip(
-            list(seg_lift[1:]) + list(seg_exit[1:]),
+        out_qs = np.concatenate([seg_lift[1:], seg_exit[1:]])
+        out_clear = world.configs_clear(out_qs, opening)
+        for q, dz, ok in zip(
+            out_qs,
             list(np.linalg.norm(lifted[1:], axis=1)) + [np.inf] * (len(seg_exit) - 1),
+            out_clear,
             strict=True,
         ):
+            if ok:
+                continue
             # the first millimetres may graze neighbours the fit left touching (pose noise): tool and arm only
             skip_held = ("object", "clutter") if dz < opts.release_tolerance_m else ()
             if world.check_config(q, opening, skip_held=skip_held) is not None:
