@@ -71,6 +71,9 @@ def main() -> None:
     opts = FitOptions()
     rows = []
     frame_times = []
+    frame_cpu: list[tuple[float, int]] = []
+    cpu_times: list[float] = []
+    unl_cpu: list[float] = []
     unl = [0, 0, 0]
     t_gen = 0.0
     for f in range(args.frames):
@@ -87,8 +90,13 @@ def main() -> None:
         t_gen += time.perf_counter() - t0
         ctx = FitContext(sf.frame.camera, sf.frame.depth_m)
         tf = time.perf_counter()
-        fits = [fit_template(n, sf.layout.templates[i.source_id], opts, ctx) for n, i in zip(nps, insts, strict=True)]
+        fits = []
+        for n, i in zip(nps, insts, strict=True):
+            c0 = time.process_time()
+            fits.append(fit_template(n, sf.layout.templates[i.source_id], opts, ctx))
+            cpu_times.append(time.process_time() - c0)
         frame_times.append((time.perf_counter() - tf, len(fits)))
+        frame_cpu.append((sum(cpu_times[-len(fits) :]) if fits else 0.0, len(fits)))
         for fit, inst in zip(fits, insts, strict=True):
             t = sf.layout.templates[inst.source_id]
             gt = sf.world_from_object[inst.source_id]
@@ -99,7 +107,9 @@ def main() -> None:
             from dataclasses import replace
 
             for n, inst in zip(nps, insts, strict=True):
+                c0 = time.process_time()
                 fb = fit_best(replace(n, label=""), library, opts, ctx)
+                unl_cpu.append(time.process_time() - c0)
                 t = sf.layout.templates[inst.source_id]
                 unl[0] += 1
                 unl[1] += int(fb.accepted and fb.template.name == t.name)
@@ -123,18 +133,23 @@ def main() -> None:
     print(f"time per object: median {np.median(a[:, 5]) * 1000:.1f} ms, p90 {np.percentile(a[:, 5], 90) * 1000:.1f} ms")
     per10 = [t / n * 10 for t, n in frame_times if n]
     print(f"time per 10 objects (frame total scaled to 10): median {np.median(per10) * 1000:.0f} ms")
+    cpu10 = [t / n * 10 for t, n in frame_cpu if n]
+    print(
+        f"CPU time (process_time) per object: median {np.median(cpu_times) * 1000:.1f} ms, "
+        f"p90 {np.percentile(cpu_times, 90) * 1000:.1f} ms; per 10 objects: median {np.median(cpu10) * 1000:.0f} ms"
+    )
     print(f"size factor: median {np.median(a[:, 6]):.4f}, p90 |s-1| {np.percentile(np.abs(a[:, 6] - 1), 90):.4f}")
-    for n in names:
-        sel = np.array([r[0] == n for r in rows])
+    for name in names:
+        sel = np.array([r[0] == name for r in rows])
         print(
-            f"  {n:9s} n={sel.sum():3d} med {np.median(a[sel, 0]) * 1000:5.2f} mm {np.median(a[sel, 1]):5.2f} deg "
+            f"  {name:9s} n={sel.sum():3d} med {np.median(a[sel, 0]) * 1000:5.2f} mm {np.median(a[sel, 1]):5.2f} deg "
             f"recall {a[sel, 3].mean():.2f} accepted {a[sel, 4].mean():.2f} wrong-accepted "
             f"{int((a[sel, 4] == 1).sum() - ((a[sel, 4] == 1) & (a[sel, 3] == 1)).sum())}"
         )
     if unl[0]:
         print(
             f"label '' (fit_best over {len(library)} templates): {unl[1]}/{unl[0]} right template accepted, "
-            f"{unl[2]} wrong template accepted"
+            f"{unl[2]} wrong template accepted; CPU per object median {np.median(unl_cpu) * 1000:.0f} ms"
         )
     if args.lmo:
         lmo()
@@ -158,6 +173,9 @@ def lmo() -> None:
     cams = json.loads((root / "test/000002/scene_camera.json").read_text())["3"]
     k = np.array(cams["cam_K"]).reshape(3, 3)
     raw = cv2.imread(str(root / "test/000002/depth/000003.png"), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        print("LM-O depth image unreadable; skipped")
+        return
     depth = raw.astype(float) * cams["depth_scale"] / 1000.0
     cam = Camera(k, depth.shape[1], depth.shape[0])
     gt_e = [g for g in json.loads((root / "test/000002/scene_gt.json").read_text())["3"] if g["obj_id"] == 5][0]
@@ -177,7 +195,10 @@ def lmo() -> None:
         from normpos_grasp.measure.measure import measure_instances
         from normpos_grasp.perception.depth_segmenter import DepthSegmenter
 
-        rgb = cv2.imread(str(root / "test/000002/rgb/000003.png"))[:, :, ::-1].copy()
+        bgr = cv2.imread(str(root / "test/000002/rgb/000003.png"))
+        if bgr is None:
+            raise ImportError("LM-O rgb image unreadable")
+        rgb = np.ascontiguousarray(bgr[:, :, ::-1]).astype(np.uint8)
         frame = RGBDFrame(rgb, depth, cam, 0.0)
         insts = DepthSegmenter().segment(frame)
         best = max(insts, key=lambda i: (i.mask & mask).sum() / (i.mask | mask).sum())

@@ -28,7 +28,7 @@ from normpos_grasp.templates.features import fpfh, ransac_hypotheses, voxel_down
 from normpos_grasp.templates.icp import icp
 from normpos_grasp.templates.model import Template, TemplateFit
 from normpos_grasp.templates.prepared import PreparedTemplate, prepare
-from normpos_grasp.templates.scoring import PoseScore, evaluate
+from normpos_grasp.templates.scoring import PoseScore, evaluate, inlier_ratios
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)
@@ -349,14 +349,15 @@ def _fit_candidates(
     )
     keep = _distinct(poses, frac, prep, opts.n_refine)
     cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
-    out = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff)
+    out, ref_poses, ref_scales = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff, [])
     if opts.n_flip_variants > 0 and out:
         # the best pose turned about the template's principal axes (all 24 axis assignments): a view that
         # hides the distinguishing features may have pulled every hypothesis into one wrong basin; the
         # variants either win, tie (-> ambiguous, rejected) or lose clearly
-        best = out[0].object_from_frame
+        # (the refined pose of the best coarse hypothesis)
+        best = ref_poses[0]
         # turn about the measured surface's centre (object frame): the seen data stay roughly in place
-        centre = (best[:3, :3] @ meas.pts_fit.mean(axis=0) + best[:3, 3]) / out[0].scale
+        centre = (best[:3, :3] @ meas.pts_fit.mean(axis=0) + best[:3, 3]) / ref_scales[0]
         variants = []
         for d in _SIGNED_PERMS[1:]:
             rv = prep.axes @ d @ prep.axes.T
@@ -367,7 +368,7 @@ def _fit_candidates(
         vp, vs, vf = icp(
             prep,
             np.array(variants),
-            np.full(len(variants), out[0].scale),
+            np.full(len(variants), ref_scales[0]),
             meas.pts_fit[ci],
             meas.nrm_fit[ci],
             meas.thr_fit[ci],
@@ -380,7 +381,7 @@ def _fit_candidates(
         pick = [i for i in _distinct(vp, vf, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
         pick = pick[: opts.n_flip_variants]
         if pick:
-            out += _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff)
+            out, _, _ = _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff, out)
     out.sort(key=lambda c: c.score.score, reverse=True)
     if opts.fit_scale and out:
         out[0] = _with_scale(prep, out[0], meas, opts, ctx, cff)
@@ -401,7 +402,15 @@ def _refine(
     opts: FitOptions,
     ctx: FitContext | None,
     cff: FloatArray | None,
-) -> list[_Candidate]:
+    scored: list[_Candidate],
+) -> tuple[list[_Candidate], FloatArray, FloatArray]:
+    """Fine ICP of (H, 4, 4) poses: (`scored` plus the refined poses that may matter, best first; all refined
+    poses (H, 4, 4) and scales (H,) in input order).
+
+    Lazy scoring: a pose's score never exceeds its inlier ratio (one batched query), so poses are scored fully
+    in order of that bound and a pose whose bound is below `ambiguity_ratio` x the best score so far is dropped:
+    it can be neither the best nor a rival of it (the best score only grows later), so decisions are unchanged.
+    """
     poses, scales, _ = icp(
         prep,
         poses,
@@ -417,7 +426,17 @@ def _refine(
         max_corr_start=0.15 * prep.diameter,
         trim=opts.fine_trim,
     )
-    return [_evaluate(prep, p, float(s), meas, ctx, cff) for p, s in zip(poses, scales, strict=True)]
+    bound = inlier_ratios(prep, poses, scales, meas.pts_score, meas.nrm_score, meas.thr_score)
+    out = list(scored)
+    best = max((c.score.score for c in out), default=0.0)
+    for i in np.argsort(-bound, kind="stable"):
+        if out and bound[i] < opts.ambiguity_ratio * best:
+            break
+        cand = _evaluate(prep, poses[i], float(scales[i]), meas, ctx, cff)
+        out.append(cand)
+        best = max(best, cand.score.score)
+    out.sort(key=lambda c: c.score.score, reverse=True)
+    return out, poses, scales
 
 
 def _with_scale(

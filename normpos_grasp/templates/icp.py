@@ -127,16 +127,17 @@ def icp(
         hub = np.where(absr > thr[None], thr[None] / np.maximum(absr, 1e-12), 1.0)
         w = valid * hub
         jac = np.empty((h, p, dof))
-        jac[..., :3] = np.cross(y, n)
+        jac[..., :3] = _cross(y, n)
         jac[..., 3:6] = n
         if fit_scale:
             jac[..., 6] = -np.einsum("hpd,hpd->hp", n, y - c)
         jw = jac * w[..., None]
         a = jw.transpose(0, 2, 1) @ jac
-        b = -np.einsum("hpi,hp->hi", jw, r)
+        b = np.asarray(-(jw.transpose(0, 2, 1) @ r[..., None])[..., 0], dtype=np.float64)
         if point_weight > 0:
-            # a light point-to-point term pins the in-plane motions point-to-plane leaves free (one flat face)
-            e = y - m  # (h, p, 3)
+            # a light point-to-point term pins the in-plane motions point-to-plane leaves free (one flat face);
+            # rows (h, p, 3) of d(y + w x y + t)/d(w, t[, s]) = [-[y]x, I(, -(y - c))], stacked (h, 3p, dof)
+            e = (y - m).reshape(h, 3 * p)
             jp = np.zeros((h, p, 3, dof))
             jp[..., 0, 1] = y[..., 2]
             jp[..., 0, 2] = -y[..., 1]
@@ -147,9 +148,10 @@ def icp(
             jp[..., 0, 3] = jp[..., 1, 4] = jp[..., 2, 5] = 1.0
             if fit_scale:
                 jp[..., 6] = -(y - c)
-            wp = w * point_weight
-            a += np.einsum("hpki,hp,hpkj->hij", jp, wp, jp)
-            b -= np.einsum("hpki,hp,hpk->hi", jp, wp, e)
+            jps = jp.reshape(h, 3 * p, dof)
+            jpw_t = (jps * np.repeat(w * point_weight, 3, axis=1)[..., None]).transpose(0, 2, 1)
+            a += jpw_t @ jps
+            b -= (jpw_t @ e[..., None])[..., 0]
         a += np.eye(dof)[None] * 1e-9
         if fit_scale:
             a[:, 6, 6] += prior
@@ -157,7 +159,7 @@ def icp(
         enough = cnt >= 6
         a[~enough] = np.eye(dof)
         b[~enough] = 0.0
-        delta = np.linalg.solve(a, b[..., None])[..., 0]
+        delta = np.asarray(np.linalg.solve(a, b[..., None])[..., 0], dtype=np.float64)
         delta[~enough] = 0.0
         rd = batched_rodrigues(delta[:, :3])
         sig = delta[:, 6] if fit_scale else np.zeros(h)
@@ -174,6 +176,15 @@ def icp(
         if it < iterations - 1:
             gate = max(gate * ratio, gate_end)
     return poses, scales, frac
+
+
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Cross product over the last axis of (..., 3) arrays (np.cross without its per-call overhead)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
 
 
 def batched_rodrigues(rotvec: FloatArray) -> FloatArray:

@@ -64,6 +64,33 @@ def visible_samples(
     return visible, pc
 
 
+def inlier_ratios(
+    prep: PreparedTemplate,
+    object_from_frame: FloatArray,
+    scales: FloatArray,
+    pts: FloatArray,
+    nrm: FloatArray,
+    thr: FloatArray,
+) -> FloatArray:
+    """(H,) inlier ratios of (H, 4, 4) poses with (H,) scales, exactly as `evaluate` computes them (one batch).
+
+    `evaluate`'s score is the inlier ratio times factors in [0, 1], so this is an upper bound of the score:
+    a pose whose bound is below a threshold can be dropped without scoring it fully.
+    """
+    h, p = len(object_from_frame), len(pts)
+    if h == 0 or p == 0:
+        return np.zeros(h)
+    rot = object_from_frame[:, :3, :3]
+    y = (np.einsum("hij,pj->hpi", rot, pts) + object_from_frame[:, None, :3, 3]) / scales[:, None, None]
+    ny = np.einsum("hij,pj->hpi", rot, nrm)
+    r, d, _ = correspond(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=True)
+    r = r.reshape(h, p)
+    d = d.reshape(h, p)
+    near = d < np.maximum(3.0 * thr[None] / scales[:, None], 2.0 * prep.spacing)
+    inl = near & (np.abs(r) * scales[:, None] < thr[None])
+    return np.asarray(inl.mean(axis=1), dtype=np.float64)
+
+
 def evaluate(
     prep: PreparedTemplate,
     object_from_frame: FloatArray,
