@@ -323,24 +323,6 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         material_dropout=_METAL_HOLES,
         **_RGB_TYPICAL,  # type: ignore[arg-type]
     ),
-    "d455": SensorModel(
-        name="d455",
-        disparity_noise_px=0.0704,
-        baseline_m=0.095,
-        correlation_px=2.0,
-        correlated_fraction=0.6,
-        depth_unit_m=0.001,
-        min_range_m=0.4,
-        max_range_m=10.0,
-        shadows=True,
-        edge_jump_m=0.01,
-        edge_hole_px=2,
-        edge_hole_prob=0.5,
-        grazing_deg=78.0,
-        dropout_prob=0.002,
-        material_dropout=_METAL_HOLES,
-        **_RGB_TYPICAL,  # type: ignore[arg-type]
-    ),
     "zed2": SensorModel(
         name="zed2",
         disparity_noise_px=0.176,
@@ -383,6 +365,10 @@ SENSOR_PRESETS: dict[str, SensorModel] = {
         rgb_blur_px=0.5,
     ),
 }
+# The D455 is the D435's matcher with a wider baseline and a longer range (same holes and RGB).
+SENSOR_PRESETS["d455"] = replace(
+    SENSOR_PRESETS["d435"], name="d455", disparity_noise_px=0.0704, baseline_m=0.095, min_range_m=0.4, max_range_m=10.0
+)
 
 
 def sensor_preset(name: str, **overrides: object) -> SensorModel:
