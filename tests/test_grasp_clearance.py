@@ -56,7 +56,8 @@ def test_flat_bar_fingertips_stop_above_the_floor(bin_cell: CellConfig) -> None:
     for e in feasible:
         c = e.candidate
         low = _tip_lowest_z(bin_cell, c.world_from_tcp, c.opening_m)
-        assert low >= FLOOR_Z + opts.tip_margin_m - 1e-6, c.grasp_id
+        # the margin is kept along the approach: straight down it is vertical, tilted a little less
+        assert low >= FLOOR_Z + opts.tip_margin_m * abs(c.world_from_tcp[2, 2]) - 1e-6, c.grasp_id
         assert low <= FLOOR_Z + 0.025 - opts.min_contact_m + 1e-6, c.grasp_id  # jaws overlap the part's sides
     assert any(e.candidate.grasp_id.endswith("@up") for e in feasible)
     # without the raise, the top-down pinches across the bar leave the tips closer to the floor than the margin

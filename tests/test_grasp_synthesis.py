@@ -70,22 +70,30 @@ def test_cylinder_sphere_plate_schemes() -> None:
         symmetry=Symmetry(continuous=((np.array([0.0, 0.0, 1.0]), np.zeros(3)),)),
     )
     g = synthesize(cyl)
-    side = [x for x in g if x.id.startswith("cyl_side_") and x.scheme == "parallel"]
+    side = [x for x in g if x.id.startswith("cyl_side_") and x.scheme == "parallel" and "_t" not in x.id]
+    leaning = [x for x in g if x.id.startswith("cyl_side_") and "_t" in x.id]
+    # tilted side grasps lean along the axis; the jaws still close across it
+    assert leaning and all(abs(x.object_from_tcp[2, 0]) < 1e-9 and abs(x.object_from_tcp[2, 2]) > 0.3 for x in leaning)
     assert side and all(abs(x.object_from_tcp[2, 2]) < 1e-9 and abs(x.object_from_tcp[2, 0]) < 1e-9 for x in side)
     assert all(x.opening_m == pytest.approx(0.04 + 2 * OPTS.clearance_m) for x in side)
     assert any(x.id.startswith("cyl_cap_suction") for x in g)
     # without a declared symmetry the axis is found from the box extents
     cyl2 = Template("c", "c", trimesh.creation.cylinder(0.02, 0.07, sections=64), shape="cylinder")
-    side2 = [x for x in synthesize(cyl2) if x.id.startswith("cyl_side_") and x.scheme == "parallel"]
+    side2 = [
+        x for x in synthesize(cyl2) if x.id.startswith("cyl_side_") and x.scheme == "parallel" and "_t" not in x.id
+    ]
     assert side2 and all(abs(x.object_from_tcp[2, 2]) < 1e-6 for x in side2)
     sph = Template("s", "s", trimesh.creation.icosphere(3, 0.0225), shape="sphere")
     gs = synthesize(sph, ("parallel",))
     assert gs and all(x.opening_m == pytest.approx(0.045 + 2 * OPTS.clearance_m, abs=1e-3) for x in gs)
     plate = Template("p", "p", trimesh.creation.box((0.08, 0.06, 0.008)), shape="plate")
     gp = synthesize(plate)
-    pinches = [x for x in gp if x.scheme == "parallel"]
+    pinches = [x for x in gp if x.id.startswith("plate_edge")]
     assert pinches and all(abs(x.object_from_tcp[2, 0]) == pytest.approx(1.0) for x in pinches)
     assert all(x.opening_m == pytest.approx(0.008 + 2 * OPTS.clearance_m) for x in pinches)
+    across = [x for x in gp if x.id.startswith("plate_across")]  # from the face, closing across width / length
+    assert len(across) == 4 and all(abs(x.object_from_tcp[2, 2]) == pytest.approx(1.0) for x in across)
+    assert sorted(round(x.opening_m, 4) for x in across) == pytest.approx([0.08, 0.08, 0.1, 0.1])
     assert any(x.scheme == "suction" and x.object_from_tcp[2, 2] < -0.99 for x in gp)
 
 

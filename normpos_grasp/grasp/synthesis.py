@@ -2,7 +2,7 @@
 
 Schemes: box (parallel across each face pair from every side; suction on each face), cylinder (side grasps around
 the axis, top-down across the diameter, across the caps, suction on caps), sphere (parallel from sampled
-directions, suction), plate (suction on the broad faces, edge pinch), irregular / bracket / ring (antipodal pairs
+directions, suction), plate (suction on the broad faces, edge pinch, pinch across width or length from the face), irregular / bracket / ring (antipodal pairs
 with a friction-cone test, suction on flat facets). TCP convention: z = approach (into the object), x = jaw
 closing direction. Which faces are exposed is decided later by the collision checks, not here.
 """
@@ -221,7 +221,7 @@ def _cylinder(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
     axis, c, r, length = _cylinder_axis(t)
     u, v = _perpendicular(axis)
     out = []
-    heights = [0.0] if length < 4 * r else [-length / 4.0, 0.0, length / 4.0]
+    heights = [0.0] if length < max(4 * r, o.slide_min_m) else [-length / 4.0, 0.0, length / 4.0]
     for k in range(o.side_angles):
         ang = 2 * np.pi * k / o.side_angles
         approach = -(np.cos(ang) * u + np.sin(ang) * v)
@@ -229,17 +229,23 @@ def _cylinder(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
         depth = o.depth(2 * r)
         for h_idx, h in enumerate(heights):
             pos = c + h * axis - approach * (r - depth)
-            out.append(
-                _g(
-                    f"cyl_side_{k}_h{h_idx}",
-                    "parallel",
-                    tcp_frame(approach, closing, pos),
-                    2 * r + 2 * o.clearance_m,
-                    0.9,
-                    o,
-                    free_axis=None,
-                )
-            )
+            base = tcp_frame(approach, closing, pos)
+            gid = f"cyl_side_{k}_h{h_idx}"
+            out.append(_g(gid, "parallel", base, 2 * r + 2 * o.clearance_m, 0.9, o, free_axis=None))
+            for ang in o.tilt_angles_rad:  # leaning along the axis: the jaws stay on the same diameter
+                for sign in (1.0, -1.0):
+                    tilted = base.copy()
+                    tilted[:3, :3] = base[:3, :3] @ _rot_x(sign * ang)
+                    out.append(
+                        _g(
+                            f"{gid}_t{'+' if sign > 0 else '-'}{np.rad2deg(ang):.0f}",
+                            "parallel",
+                            tilted,
+                            2 * r + 2 * o.clearance_m,
+                            0.9 - 0.1 * ang,
+                            o,
+                        )
+                    )
             # across the caps, approached from the side (closing along the axis)
         pos = c - approach * (r - depth)
         out.append(_g(f"cyl_caps_{k}", "parallel", tcp_frame(approach, axis, pos), length + 2 * o.clearance_m, 0.7, o))
@@ -345,6 +351,23 @@ def _plate(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
                     tcp_frame(approach, normal, pos),
                     ext[n_idx] + 2 * o.clearance_m,
                     0.7,
+                    o,
+                )
+            )
+    # a plate lying on its face: pinch across its width or length from above / below (the tips reach down the
+    # rim; the planner raises them off the surface underneath)
+    depth = o.depth(float(ext[n_idx]))
+    for e_idx in (a_idx, b_idx):
+        for s in (1.0, -1.0):
+            approach = -s * normal
+            pos = c + s * normal * (ext[n_idx] / 2.0 - depth)
+            out.append(
+                _g(
+                    f"plate_across_{e_idx}{'+' if s > 0 else '-'}",
+                    "parallel",
+                    tcp_frame(approach, rot[:, e_idx], pos),
+                    ext[e_idx] + 2 * o.clearance_m,
+                    0.6,
                     o,
                 )
             )

@@ -41,8 +41,9 @@ class EvaluationOptions:
     tip_margin_m: the tool at the grasp must also clear the cell's boxes when pushed this much further along the
     approach (fitted poses are off by millimetres: fingertips keep this margin above the bin floor), m.
     max_raise_m / raise_step_m: a parallel grasp whose fingers hit the cell (floor) at the grasp is raised back
-    along the approach in these steps up to this far, m, as long as the jaw tips still reach `min_contact_m` past
-    the part's approached face (m); the raised grasp replaces the candidate. opening_slack_m: a parallel grasp
+    along the approach in these steps up to this far, m, as long as the jaw tips still reach `min_contact_m` (or
+    40 % of the part's depth along the approach, if less) past the part's approached face (m); the raised grasp
+    replaces the candidate. opening_slack_m: a parallel grasp
     whose opening (part width + synthesis clearance) exceeds the stroke by at most this much is opened to the full
     stroke instead (less clearance beside the part; the collision checks still decide), m. Weights of the ranking
     score: quality, approach (vertical approach preferred), travel (joint distance from home, per rad),
@@ -62,7 +63,7 @@ class EvaluationOptions:
     w_height: float = 2.0
     tip_margin_m: float = 0.003
     max_raise_m: float = 0.016
-    raise_step_m: float = 0.002
+    raise_step_m: float = 0.001
     min_contact_m: float = 0.005
     opening_slack_m: float = 0.012
 
@@ -344,17 +345,21 @@ def _raise_grasps(
         return out
     # depth of the jaw tips past the approached face of the part (its smallest extent along the approach)
     face = np.empty(len(todo))
+    need = np.empty(len(todo))
     for t in np.unique(target_idx[todo]):
         rows = target_idx[todo] == t
         tgt = targets[int(t)]
         verts = np.asarray(tgt.mesh.vertices, dtype=np.float64) @ tgt.world_from_object[:3, :3].T  # type: ignore[attr-defined]
         verts = verts + tgt.world_from_object[:3, 3]
-        face[rows] = (approach[todo[rows]] @ verts.T).min(axis=1)
-    tip_depth = np.einsum("ni,ni->n", g[todo, :3, 3], approach[todo]) + tip - face
+        along = approach[todo[rows]] @ verts.T
+        face[rows] = along.min(axis=1)
+        # thin parts: the jaws must reach down at least 40 % of the part's depth along the approach
+        need[rows] = np.minimum(opts.min_contact_m, 0.4 * (along.max(axis=1) - along.min(axis=1)))
+    tip_depth = np.einsum("ni,ni->n", g[todo, :3, 3], approach[todo]) + tip - face - need
     n_steps = int(np.floor(opts.max_raise_m / opts.raise_step_m + 1e-9))
     for k in range(1, n_steps + 1):
         back = k * opts.raise_step_m
-        ok = tip_depth - back >= opts.min_contact_m
+        ok = tip_depth - back >= -1e-9
         rows = todo[ok]
         if len(rows) == 0:
             break
