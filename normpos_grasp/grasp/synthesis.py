@@ -1,9 +1,11 @@
 """Automatic grasp synthesis per object shape, in the object frame, as `GraspAnnotation`s.
 
-Schemes: box (parallel across each face pair from every side; suction on each face), cylinder (side grasps around
-the axis, top-down across the diameter, across the caps, suction on caps), sphere (parallel from sampled
-directions, suction), plate (suction on the broad faces, edge pinch, pinch across width or length from the face), irregular / bracket / ring (antipodal pairs
-with a friction-cone test, suction on flat facets). TCP convention: z = approach (into the object), x = jaw
+Schemes: box (parallel across each face pair from every side, also tilted about the closing axis and slid along
+long sides; suction on each face), cylinder (side grasps around the axis, also leaning along it, top-down across
+the diameter, across the caps, suction on caps), sphere (parallel from sampled directions, suction), plate (suction
+on the broad faces, edge pinch, pinch across width or length from the face), ring (pinches across the outer
+diameter and the faces, plus the antipodal pairs), irregular / bracket (antipodal pairs with a friction-cone test,
+suction on flat facets). TCP convention: z = approach (into the object), x = jaw
 closing direction. Which faces are exposed is decided later by the collision checks, not here.
 """
 
