@@ -157,6 +157,12 @@ class SyntheticBinSource:
             outcome = result.outcome
             if outcome != "held":
                 log.info("physics: pick of part %d %s (%s)", part, outcome, result.reason)
+                # a failed pick disturbs the bin: the parts stay where physics left them
+                poses = self.layout.world_from_object.copy()
+                others = [i for i in range(self.layout.n_parts) if i != part]
+                poses[part] = result.world_from_object_final
+                poses[others] = result.world_from_neighbours_final
+                self.layout = replace(self.layout, world_from_object=poses)
         if outcome in ("held", "not_checked"):
             self.layout = remove_parts(self.layout, [part])
         return outcome
