@@ -334,12 +334,12 @@ def _raise_grasps(
         return out
     tip = float(getattr(tool, "finger_depth_m", 0.0))
 
-    def shifted(rows: IntArray, back: float) -> FloatArray:
+    def shifted_by(rows: IntArray, back: FloatArray) -> FloatArray:
         p = g[rows].copy()
-        p[:, :3, 3] += approach[rows] * (opts.tip_margin_m - back)
+        p[:, :3, 3] += approach[rows] * (opts.tip_margin_m - np.asarray(back, dtype=np.float64))[..., None]
         return p
 
-    hit = world.tool_box_hits(shifted(idx, 0.0), openings[idx])
+    hit = world.tool_box_hits(shifted_by(idx, np.zeros(len(idx))), openings[idx])
     todo = idx[hit]
     if len(todo) == 0:
         return out
@@ -356,23 +356,29 @@ def _raise_grasps(
         # thin parts: the jaws must reach down at least 40 % of the part's depth along the approach
         need[rows] = np.minimum(opts.min_contact_m, 0.4 * (along.max(axis=1) - along.min(axis=1)))
     tip_depth = np.einsum("ni,ni->n", g[todo, :3, 3], approach[todo]) + tip - face - need
-    n_steps = int(np.floor(opts.max_raise_m / opts.raise_step_m + 1e-9))
-    for k in range(1, n_steps + 1):
-        back = k * opts.raise_step_m
-        ok = tip_depth - back >= -1e-9
-        rows = todo[ok]
-        if len(rows) == 0:
-            break
-        clear = np.logical_not(world.tool_box_hits(shifted(rows, back), openings[rows]))
-        for j in rows[clear]:
-            p = g[j].copy()
-            p[:3, 3] -= approach[j] * back
-            out[int(j)] = p
-        keep = np.ones(len(todo), dtype=bool)
-        keep[np.flatnonzero(ok)[clear]] = False
-        todo, tip_depth = todo[keep], tip_depth[keep]
-        if len(todo) == 0:
-            break
+    # smallest clear raise in whole steps, by bisection (raising along the approach only moves the tips off the
+    # surface underneath): the largest allowed raise first, then halving the bracket of each candidate at once
+    hi = np.floor(np.minimum(opts.max_raise_m, tip_depth) / opts.raise_step_m + 1e-9).astype(np.int64)
+    keep = hi >= 1
+    todo, hi = todo[keep], hi[keep]
+    if len(todo) == 0:
+        return out
+    clear = np.logical_not(world.tool_box_hits(shifted_by(todo, hi * opts.raise_step_m), openings[todo]))
+    todo, hi = todo[clear], hi[clear]
+    lo = np.zeros(len(todo), dtype=np.int64)
+    while len(todo) and np.any(hi - lo > 1):
+        open_ = hi - lo > 1
+        mid = np.where(open_, (lo + hi) // 2, hi)
+        rows = np.flatnonzero(open_)
+        ok = np.logical_not(
+            world.tool_box_hits(shifted_by(todo[rows], mid[rows] * opts.raise_step_m), openings[todo[rows]])
+        )
+        hi[rows[ok]] = mid[rows[ok]]
+        lo[rows[~ok]] = mid[rows[~ok]]
+    for j, k in zip(todo, hi, strict=True):
+        p = g[j].copy()
+        p[:3, 3] -= approach[j] * (k * opts.raise_step_m)
+        out[int(j)] = p
     return out
 
 
