@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -38,6 +39,7 @@ class EvaluationOptions:
     back by this much along the approach (suction cups and jaw faces touch the target by design), m.
     max_feasible / max_feasible_per_target: stop the collision stage after this many feasible grasps (0: check all).
     clearance: also test the tool grown by the world's clearance (feeds the ranking).
+    ik_chunk: candidates solved by IK per batch, in prior order (IK stops with the collision stage).
     tip_margin_m: the tool at the grasp must also clear the cell's boxes when pushed this much further along the
     approach (fitted poses are off by millimetres: fingertips keep this margin above the bin floor), m.
     max_raise_m / raise_step_m: a parallel grasp whose fingers hit the cell (floor) at the grasp is raised back
@@ -61,6 +63,7 @@ class EvaluationOptions:
     w_priority: float = 0.5
     w_clearance: float = 0.3
     w_height: float = 2.0
+    ik_chunk: int = 96
     tip_margin_m: float = 0.003
     max_raise_m: float = 0.016
     raise_step_m: float = 0.001
@@ -239,40 +242,9 @@ def evaluate_candidates(
         for p_idx in (2, 1, 0):
             hits = world.tool_box_hits(poses[idx, p_idx], openings[idx])
             for j in idx[hits]:
-                if verdict[int(j)] is None:
-                    reject(int(j), "collision_cell", POSE_NAMES[p_idx])
-    alive = np.array([v is None for v in verdict])
-    idx = np.flatnonzero(alive)
-    q_all = np.zeros((n, 5, 8, 6))
-    ok_all = np.zeros((n, 5, 8), dtype=bool)
-    if len(idx):
-        # 2. IK at all five poses, all branches, in one batch
-        flange = poses[idx] @ tcp_from_flange
-        q, exists, in_lim = arm.ik_reasons(flange.reshape(-1, 4, 4))
-        q = q.reshape(len(idx), 5, 8, 6)
-        exists = exists.reshape(len(idx), 5, 8)
-        in_lim = in_lim.reshape(len(idx), 5, 8)
-        q_unwrapped = _unwrap_branches(q, arm)
-        for k, j in enumerate(idx):
-            has = exists[k].any(axis=1)
-            if not has.all():
-                reject(int(j), "ik", POSE_NAMES[int(np.argmin(has))])
-                continue
-            # a branch must exist at all five poses (straight lines stay on one branch)
-            branch_ok = exists[k].all(axis=0)
-            if not branch_ok.any():
-                reject(int(j), "ik", "branch_change")
-                continue
-            q_k = q_unwrapped[k]
-            lim_ok = np.all((q_k >= arm.lower - 1e-9) & (q_k <= arm.upper + 1e-9), axis=(0, 2)) & branch_ok
-            if not lim_ok.any():
-                reject(int(j), "joint_limits", "grasp")
-                continue
-            q_all[j] = q_k
-            ok_all[j] = lim_ok[None, :]
-        del in_lim
-
-    # 3. prior order: object height, grasp quality, approach angle, priority
+                reject(int(j), "collision_cell", POSE_NAMES[p_idx])
+            idx = idx[np.logical_not(hits)]
+    # 2. prior order: object height, grasp quality, approach angle, priority
     heights = np.array([targets[c.target].height_m for c in candidates])
     prior = (
         opts.w_height * heights
@@ -282,26 +254,47 @@ def evaluate_candidates(
     )
     order = [int(i) for i in np.argsort(-prior, kind="stable") if verdict[int(i)] is None]
 
+    # 3. in prior order, chunk by chunk: IK at all five poses on all branches (one batch per chunk), then the
+    # collision checks; candidates after the stop are never solved ('not_evaluated')
     feasible: list[Evaluation] = []
     per_target: Counter[int] = Counter()
     current_target = -1
-    for i in order:
-        c = candidates[i]
-        if opts.max_feasible and len(feasible) >= opts.max_feasible:
-            break
-        if opts.max_feasible_per_target and per_target[c.target] >= opts.max_feasible_per_target:
+    chunk = max(int(opts.ik_chunk), 1)
+    cursor = 0
+    done = False
+    while cursor < len(order) and not done:
+        block: list[int] = []
+        while cursor < len(order) and len(block) < chunk:
+            i = order[cursor]
+            cursor += 1
+            if opts.max_feasible_per_target and per_target[candidates[i].target] >= opts.max_feasible_per_target:
+                continue
+            block.append(i)
+        if not block:
             continue
-        if c.target != current_target:
-            if current_target >= 0:
-                world.enable(targets[current_target].name)
-            current_target = c.target
-        ev = _check_collisions(i, c, poses[i], q_all[i], ok_all[i], targets[c.target], world, arm, home_q, opts)
-        verdict[i] = ev
-        if ev.feasible:
-            ev = _with_score(ev, prior[i], arm, home_q, world, opts)
+        q_blk, ok_blk = _solve_ik(np.array(block), poses, tcp_from_flange, arm, reject)
+        for i in block:
+            if verdict[i] is not None:
+                continue
+            c = candidates[i]
+            if opts.max_feasible and len(feasible) >= opts.max_feasible:
+                done = True
+                break
+            if opts.max_feasible_per_target and per_target[c.target] >= opts.max_feasible_per_target:
+                continue
+            if c.target != current_target:
+                if current_target >= 0:
+                    world.enable(targets[current_target].name)
+                current_target = c.target
+            ev = _check_collisions(i, c, poses[i], q_blk[i], ok_blk[i], targets[c.target], world, arm, home_q, opts)
             verdict[i] = ev
-            feasible.append(ev)
-            per_target[c.target] += 1
+            if ev.feasible:
+                ev = _with_score(ev, prior[i], arm, home_q, world, opts)
+                verdict[i] = ev
+                feasible.append(ev)
+                per_target[c.target] += 1
+        if opts.max_feasible and len(feasible) >= opts.max_feasible:
+            done = True
     if current_target >= 0:
         world.enable(targets[current_target].name)
         world.detach()
@@ -312,6 +305,43 @@ def evaluate_candidates(
     counts = Counter(v.reason for v in final if not v.feasible)
     ranked = tuple(sorted(feasible, key=lambda e: -e.score))
     return EvaluationResult(tuple(final), ranked, dict(counts))
+
+
+def _solve_ik(
+    idx: IntArray,
+    poses: FloatArray,
+    tcp_from_flange: FloatArray,
+    arm: ArmModel,
+    reject: Callable[[int, str, str], None],
+) -> tuple[dict[int, FloatArray], dict[int, FloatArray]]:
+    """IK of candidates `idx` at their five poses on all 8 branches, one batch: per candidate index the unwrapped
+    angles (5, 8, 6) and the valid branches (5, 8); candidates without a branch valid at all five poses are
+    rejected ('ik' with the pose, 'ik' 'branch_change', 'joint_limits') and left out."""
+    q_out: dict[int, FloatArray] = {}
+    ok_out: dict[int, FloatArray] = {}
+    flange = poses[idx] @ tcp_from_flange
+    q, exists, _ = arm.ik_reasons(flange.reshape(-1, 4, 4))
+    q = q.reshape(len(idx), 5, 8, 6)
+    exists = exists.reshape(len(idx), 5, 8)
+    q_unwrapped = _unwrap_branches(q, arm)
+    for k, j in enumerate(idx):
+        has = exists[k].any(axis=1)
+        if not has.all():
+            reject(int(j), "ik", POSE_NAMES[int(np.argmin(has))])
+            continue
+        # a branch must exist at all five poses (straight lines stay on one branch)
+        branch_ok = exists[k].all(axis=0)
+        if not branch_ok.any():
+            reject(int(j), "ik", "branch_change")
+            continue
+        q_k = q_unwrapped[k]
+        lim_ok = np.all((q_k >= arm.lower - 1e-9) & (q_k <= arm.upper + 1e-9), axis=(0, 2)) & branch_ok
+        if not lim_ok.any():
+            reject(int(j), "joint_limits", "grasp")
+            continue
+        q_out[int(j)] = q_k
+        ok_out[int(j)] = np.broadcast_to(lim_ok[None, :], (5, 8))
+    return q_out, ok_out
 
 
 def _raise_grasps(
