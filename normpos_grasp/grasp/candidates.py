@@ -4,7 +4,7 @@ matched no template."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -101,6 +101,18 @@ def object_grasps(
         for g in _synthesize_cached(template, kinds, options.synthesis):
             out.append((g, "synthesized", g.id, np.asarray(g.object_from_tcp, dtype=np.float64)))
     return out
+
+
+@lru_cache(maxsize=256)
+def _object_grasps_cached(
+    template: Template, kinds: tuple[str, ...], options: CandidateOptions
+) -> tuple[list[tuple[GraspAnnotation, str, str, FloatArray]], FloatArray]:
+    """`object_grasps` and their object_from_tcp stacked (G, 4, 4), once per template (by identity), tool kinds
+    and options (read-only: callers must not modify them)."""
+    grasps = object_grasps(template, kinds, options)
+    poses = np.stack([pose for *_, pose in grasps]) if grasps else np.zeros((0, 4, 4))
+    poses.setflags(write=False)
+    return grasps, poses
 
 
 def _symmetry_axes(template: Template) -> list[tuple[FloatArray, FloatArray]]:
@@ -212,33 +224,34 @@ def candidates_for_object(
         (world_from_object[:3, :3] @ a, world_from_object[:3, :3] @ p + world_from_object[:3, 3])
         for a, p in _symmetry_axes(template)
     ]
-    grasps = object_grasps(template, (tool_kind,), opts)
+    grasps, object_poses = _object_grasps_cached(template, (tool_kind,), opts)
     if not grasps:
         return out
-    world_poses = world_from_object @ np.stack([pose for *_, pose in grasps])
+    world_poses = world_from_object @ object_poses
     if axes_world and opts.snap_to_vertical:
         snapped, has_snap = snap_down_batch(world_poses, axes_world)
     else:
         snapped, has_snap = world_poses, np.zeros(len(world_poses), dtype=bool)
-    for k, ((g, source, gid, _), world_from_tcp) in enumerate(zip(grasps, world_poses, strict=True)):
-        quality = float(np.clip(g.priority if source == "synthesized" else 1.0, 0.0, 1.0))
-        out.append(
-            GraspCandidate(
-                target=target,
-                template=template.name,
-                grasp_id=gid,
-                source=source,
-                scheme=g.scheme,
-                world_from_tcp=world_from_tcp,
-                opening_m=float(g.opening_m),
-                approach_m=float(g.approach_m),
-                retreat_m=float(g.retreat_m),
-                quality=quality,
-                priority=float(g.priority) if source == "annotated" else 0.0,
-            )
+    name = template.name
+    for k, (g, source, gid, _) in enumerate(grasps):
+        synthesized = source == "synthesized"
+        quality = min(max(float(g.priority), 0.0), 1.0) if synthesized else 1.0
+        fields = (
+            target,
+            name,
+            gid,
+            source,
+            g.scheme,
+            world_poses[k],
+            float(g.opening_m),
+            float(g.approach_m),
+            float(g.retreat_m),
+            quality,
+            0.0 if synthesized else float(g.priority),
         )
+        out.append(GraspCandidate(*fields))
         if has_snap[k]:
-            out.append(replace(out[-1], grasp_id=f"{gid}@down", world_from_tcp=snapped[k]))
+            out.append(GraspCandidate(target, name, f"{gid}@down", source, g.scheme, snapped[k], *fields[6:]))
     return out
 
 
