@@ -28,8 +28,8 @@ from normpos_grasp.templates.features import fpfh, ransac_hypotheses, voxel_down
 from normpos_grasp.templates.icp import icp
 from normpos_grasp.templates.model import Template, TemplateFit
 from normpos_grasp.templates.prepared import PreparedTemplate, prepare
-from normpos_grasp.templates.scoring import PoseScore, evaluate, inlier_ratios
-from normpos_grasp.typing import FloatArray
+from normpos_grasp.templates.scoring import PoseScore, consistency_neighbours, evaluate, inlier_ratios
+from normpos_grasp.typing import FloatArray, IntArray
 
 logger = logging.getLogger(__name__)
 
@@ -141,6 +141,7 @@ class _Measured:
     thr_score: FloatArray
     tree: cKDTree
     viewpoint: FloatArray
+    neighbours_score: IntArray
     all_pts: FloatArray = field(repr=False)
     all_nrm: FloatArray = field(repr=False)
 
@@ -162,13 +163,29 @@ def fit_template(
         meas = _prepare_measurement(normpos, opts)
     except _TooFew as exc:
         return _rejected(template, normpos, str(exc), t0)
+    return _fit_prepared(normpos, template, meas, opts, camera, 0.0, t0)
+
+
+def _fit_prepared(
+    normpos: NormPosition,
+    template: Template,
+    meas: _Measured,
+    opts: FitOptions,
+    camera: FitContext | None,
+    floor: float,
+    t0: float,
+) -> TemplateFit:
+    """`fit_template` on a prepared measurement; poses whose score bound is below `floor` are not scored."""
     prep = prepare(template)
     if camera is not None and opts.depth_bias_m:
         d = np.asarray(camera.depth_m, dtype=np.float64)
         camera = FitContext(camera.camera, np.where(d > 0, d - opts.depth_bias_m, 0.0))
-    cands = _fit_candidates(prep, template, normpos, meas, opts, camera)
+    cands = _fit_candidates(prep, template, normpos, meas, opts, camera, floor)
     if not cands:
-        return _rejected(template, normpos, "no pose hypothesis explained the measured points", t0)
+        reason = "no pose hypothesis explained the measured points"
+        if floor > 0:
+            reason = f"dominated: no pose can score {floor:.3f} (another template explains the points better)"
+        return _rejected(template, normpos, reason, t0)
     return _decide(prep, template, normpos, cands, opts, camera, t0)
 
 
@@ -211,7 +228,17 @@ def fit_best(
         chosen = [t for t in templates if _size_compatible(normpos, t, opts)]
         if not chosen:
             return _rejected(templates[0], normpos, "no template is compatible with the measured size", t0)
-    fits = [fit_template(normpos, t, opts, camera) for t in chosen]
+    try:
+        meas = _prepare_measurement(normpos, opts)
+    except _TooFew as exc:
+        return _rejected(chosen[0], normpos, str(exc), t0)
+    # likeliest template first (measured extents closest to the template's): its score sets a floor below
+    # which the other templates' poses need not be scored (they could be neither the best nor a class rival)
+    chosen.sort(key=lambda t: _extent_mismatch(normpos, t))
+    fits: list[TemplateFit] = []
+    for t in chosen:
+        floor = opts.class_ambiguity_ratio * max((f.score for f in fits if f.accepted), default=0.0)
+        fits.append(_fit_prepared(normpos, t, meas, opts, camera, floor, time.perf_counter()))
     fits.sort(key=lambda f: (f.accepted, f.score), reverse=True)
     best = fits[0]
     if len(fits) > 1 and best.accepted and not normpos.label:
@@ -281,6 +308,7 @@ def _prepare_measurement(normpos: NormPosition, opts: FitOptions) -> _Measured:
         thr_score=thr_all[si],
         tree=cKDTree(pts),
         viewpoint=vp,
+        neighbours_score=consistency_neighbours(pts[si]),
         all_pts=pts,
         all_nrm=nrm,
     )
@@ -321,6 +349,7 @@ def _fit_candidates(
     meas: _Measured,
     opts: FitOptions,
     ctx: FitContext | None,
+    floor: float = 0.0,
 ) -> list[_Candidate]:
     rng = np.random.default_rng(opts.seed + 1)
     hyps = []
@@ -349,8 +378,8 @@ def _fit_candidates(
     )
     keep = _distinct(poses, frac, prep, opts.n_refine)
     cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
-    out, ref_poses, ref_scales = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff, [])
-    if opts.n_flip_variants > 0 and out:
+    out, ref_poses, ref_scales = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff, [], floor)
+    if opts.n_flip_variants > 0 and len(ref_poses):
         # the best pose turned about the template's principal axes (all 24 axis assignments): a view that
         # hides the distinguishing features may have pulled every hypothesis into one wrong basin; the
         # variants either win, tie (-> ambiguous, rejected) or lose clearly
@@ -381,7 +410,7 @@ def _fit_candidates(
         pick = [i for i in _distinct(vp, vf, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
         pick = pick[: opts.n_flip_variants]
         if pick:
-            out, _, _ = _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff, out)
+            out, _, _ = _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff, out, floor)
     out.sort(key=lambda c: c.score.score, reverse=True)
     if opts.fit_scale and out:
         out[0] = _with_scale(prep, out[0], meas, opts, ctx, cff)
@@ -403,6 +432,7 @@ def _refine(
     ctx: FitContext | None,
     cff: FloatArray | None,
     scored: list[_Candidate],
+    floor: float = 0.0,
 ) -> tuple[list[_Candidate], FloatArray, FloatArray]:
     """Fine ICP of (H, 4, 4) poses: (`scored` plus the refined poses that may matter, best first; all refined
     poses (H, 4, 4) and scales (H,) in input order).
@@ -410,6 +440,7 @@ def _refine(
     Lazy scoring: a pose's score never exceeds its inlier ratio (one batched query), so poses are scored fully
     in order of that bound and a pose whose bound is below `ambiguity_ratio` x the best score so far is dropped:
     it can be neither the best nor a rival of it (the best score only grows later), so decisions are unchanged.
+    A pose whose bound is below `floor` (set by another template in `fit_best`) is dropped too.
     """
     poses, scales, _ = icp(
         prep,
@@ -430,7 +461,7 @@ def _refine(
     out = list(scored)
     best = max((c.score.score for c in out), default=0.0)
     for i in np.argsort(-bound, kind="stable"):
-        if out and bound[i] < opts.ambiguity_ratio * best:
+        if (out and bound[i] < opts.ambiguity_ratio * best) or bound[i] < floor:
             break
         cand = _evaluate(prep, poses[i], float(scales[i]), meas, ctx, cff)
         out.append(cand)
@@ -488,6 +519,7 @@ def _evaluate(
         camera=ctx.camera if ctx is not None else None,
         depth_m=ctx.depth_m if ctx is not None else None,
         camera_from_frame=cff,
+        neighbours=meas.neighbours_score,
     )
     return _Candidate(pose, scale, sc)
 
@@ -684,6 +716,14 @@ def _size_compatible(normpos: NormPosition, template: Template, opts: FitOptions
     prep = prepare(template)
     ext = float(np.max(np.asarray(normpos.obb.extents, dtype=np.float64)))
     return ext <= prep.diameter * (1.0 + opts.scale_tolerance) + 0.01
+
+
+def _extent_mismatch(normpos: NormPosition, template: Template) -> float:
+    """How far the measured OBB extents lie from the template's principal extents (log ratio, two largest)."""
+    prep = prepare(template)
+    ext_t = np.sort(np.ptp(prep.samples @ prep.axes, axis=0))[::-1]
+    ext_m = np.sort(np.asarray(normpos.obb.extents, dtype=np.float64))[::-1]
+    return float(np.sum(np.abs(np.log(np.maximum(ext_m[:2], 1e-4) / np.maximum(ext_t[:2], 1e-4)))))
 
 
 def _same_shape(a: TemplateFit, b: TemplateFit) -> bool:

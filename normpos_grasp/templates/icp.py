@@ -37,13 +37,12 @@ def correspond_points(
     Returns residual (P,) point-to-plane distance, dist (P,) point-to-point distance (inf when none),
     model normal (P, 3) and model point (P, 3).
     """
-    bins = normal_bins(ny)
     if exact:
         dist, idx = prep.tree.query(y)
         ok = np.einsum("pd,pd->p", prep.normals[idx], ny) > NORMAL_COS
         if not np.all(ok):
             bad = np.flatnonzero(~ok)
-            d2, i2 = prep.nearest_binned(y[bad], bins[bad])
+            d2, i2 = prep.nearest_binned(y[bad], normal_bins(ny[bad]))
             dist[bad] = d2
             idx[bad] = i2
             ok[bad] = np.einsum("pd,pd->p", prep.normals[i2], ny[bad]) > NORMAL_COS
@@ -54,7 +53,7 @@ def correspond_points(
         ok = np.einsum("pd,pd->p", prep.normals[sel], ny) > NORMAL_COS
         if not np.all(ok):
             bad = np.flatnonzero(~ok)
-            s2, in2 = prep.grid_lookup_binned(y[bad], bins[bad])
+            s2, in2 = prep.grid_lookup_binned(y[bad], normal_bins(ny[bad]))
             sel[bad] = s2
             inside[bad] = in2
             ok[bad] = np.einsum("pd,pd->p", prep.normals[s2], ny[bad]) > NORMAL_COS
@@ -82,6 +81,7 @@ def icp(
     trim: float = 0.85,
     exact_last: int = 0,
     point_weight: float = 0.05,
+    converge_m: float | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Refine (H, 4, 4) `object_from_frame` poses and (H,) scales on (P, 3) points/normals.
 
@@ -90,6 +90,9 @@ def icp(
     except with `exact` or in the last `exact_last` iterations (KD-tree, normal-compatible); residuals
     above the `trim` quantile are dropped and the rest Huber-weighted.
     point_weight: weight of an added point-to-point term (fixes motions within a single visible plane).
+    converge_m: once the gate is at its floor and no hypothesis moves more than this (metres, rotation taken
+    at one diameter; default 2e-6 diameter), the grid stage ends early (the exact stage follows) and the
+    exact stage stops.
     Returns poses, scales and the (H,) inlier fraction at the last iteration.
     """
     poses = poses.copy()
@@ -104,7 +107,9 @@ def icp(
     dof = 7 if fit_scale else 6
     # a prior keeping the scale near 1 unless the data insist (equivalent to a few points at 1 diameter)
     prior = 0.1 * prep.diameter**2
-    for it in range(iterations):
+    converge = converge_m if converge_m is not None else 2e-6 * prep.diameter
+    it = 0
+    while it < iterations:
         rot = poses[:, :3, :3]
         y = (np.einsum("hij,pj->hpi", rot, pts) + poses[:, None, :3, 3]) / scales[:, None, None]
         ny = np.einsum("hij,pj->hpi", rot, nrm)
@@ -121,8 +126,7 @@ def icp(
         big = np.where(valid, absr, np.inf)
         cnt = valid.sum(1)
         kth = np.clip((trim * cnt).astype(int) - 1, 0, p - 1)
-        srt = np.sort(big, axis=1)
-        cut = srt[np.arange(h), kth]
+        cut = np.take_along_axis(np.sort(big, axis=1), kth[:, None], axis=1)[:, 0]
         valid &= absr <= np.maximum(cut, thr.min())[:, None]
         hub = np.where(absr > thr[None], thr[None] / np.maximum(absr, 1e-12), 1.0)
         w = valid * hub
@@ -136,22 +140,29 @@ def icp(
         b = np.asarray(-(jw.transpose(0, 2, 1) @ r[..., None])[..., 0], dtype=np.float64)
         if point_weight > 0:
             # a light point-to-point term pins the in-plane motions point-to-plane leaves free (one flat face);
-            # rows (h, p, 3) of d(y + w x y + t)/d(w, t[, s]) = [-[y]x, I(, -(y - c))], stacked (h, 3p, dof)
-            e = (y - m).reshape(h, 3 * p)
-            jp = np.zeros((h, p, 3, dof))
-            jp[..., 0, 1] = y[..., 2]
-            jp[..., 0, 2] = -y[..., 1]
-            jp[..., 1, 0] = -y[..., 2]
-            jp[..., 1, 2] = y[..., 0]
-            jp[..., 2, 0] = y[..., 1]
-            jp[..., 2, 1] = -y[..., 0]
-            jp[..., 0, 3] = jp[..., 1, 4] = jp[..., 2, 5] = 1.0
+            # per point J = [-[y]x, I(, -(y - c))]: J^T W J and J^T W e summed in closed form over the points
+            e = y - m  # (h, p, 3)
+            wp = w * point_weight
+            s0 = wp.sum(1)
+            s1 = (wp[:, None, :] @ y)[:, 0]  # (h, 3) sum w y
+            s2 = (y * wp[..., None]).transpose(0, 2, 1) @ y  # (h, 3, 3) sum w y y^T
+            sx = _skew(s1)
+            a[:, :3, :3] += np.einsum("hii->h", s2)[:, None, None] * np.eye(3) - s2
+            a[:, :3, 3:6] += sx
+            a[:, 3:6, :3] -= sx
+            a[:, 3:6, 3:6] += s0[:, None, None] * np.eye(3)
+            b[:, :3] -= (wp[:, None, :] @ _cross(y, e))[:, 0]
+            b[:, 3:6] -= (wp[:, None, :] @ e)[:, 0]
             if fit_scale:
-                jp[..., 6] = -(y - c)
-            jps = jp.reshape(h, 3 * p, dof)
-            jpw_t = (jps * np.repeat(w * point_weight, 3, axis=1)[..., None]).transpose(0, 2, 1)
-            a += jpw_t @ jps
-            b -= (jpw_t @ e[..., None])[..., 0]
+                yc = y - c
+                col_r = (wp[:, None, :] @ _cross(y, np.broadcast_to(c, y.shape)))[:, 0]  # sum w y x c
+                col_t = -(wp[:, None, :] @ yc)[:, 0]
+                a[:, :3, 6] += col_r
+                a[:, 6, :3] += col_r
+                a[:, 3:6, 6] += col_t
+                a[:, 6, 3:6] += col_t
+                a[:, 6, 6] += np.einsum("hp,hpd,hpd->h", wp, yc, yc)
+                b[:, 6] += (wp[:, None, :] @ np.einsum("hpd,hpd->hp", yc, e)[..., None])[:, 0, 0]
         a += np.eye(dof)[None] * 1e-9
         if fit_scale:
             a[:, 6, 6] += prior
@@ -173,9 +184,33 @@ def icp(
         )
         poses = new
         scales = s_new
+        at_floor = gate <= gate_end
         if it < iterations - 1:
             gate = max(gate * ratio, gate_end)
+        it += 1
+        # converged (motion of every hypothesis below `converge`, gate at its floor): the correspondences and
+        # so the poses would not change any more; go on with the exact stage or stop
+        moved = float(
+            np.max(np.linalg.norm(delta[:, :3], axis=1) * prep.diameter + np.linalg.norm(delta[:, 3:6], axis=1))
+        )
+        if at_floor and moved < converge:
+            if not exact and exact_last > 0 and it < iterations - exact_last:
+                it = iterations - exact_last
+            else:
+                break
     return poses, scales, frac
+
+
+def _skew(v: FloatArray) -> FloatArray:
+    """(H, 3, 3) cross-product matrices [v]x of (H, 3) vectors."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1] = -v[:, 2]
+    out[:, 0, 2] = v[:, 1]
+    out[:, 1, 0] = v[:, 2]
+    out[:, 1, 2] = -v[:, 0]
+    out[:, 2, 0] = -v[:, 1]
+    out[:, 2, 1] = v[:, 0]
+    return out
 
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:

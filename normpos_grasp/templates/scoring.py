@@ -16,7 +16,7 @@ from normpos_grasp.camera.model import Camera
 from normpos_grasp.geometry.transforms import invert_pose, look_at
 from normpos_grasp.templates.icp import correspond
 from normpos_grasp.templates.prepared import PreparedTemplate
-from normpos_grasp.typing import BoolArray, FloatArray
+from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
 FREE_SPACE_WINDOW_PX = 2
 
@@ -104,6 +104,7 @@ def evaluate(
     camera: Camera | None = None,
     depth_m: FloatArray | None = None,
     camera_from_frame: FloatArray | None = None,
+    neighbours: IntArray | None = None,
 ) -> PoseScore:
     """Score one pose. pts/nrm (P, 3): measured points/normals used for inliers; thr (P,) inlier distances.
 
@@ -117,7 +118,7 @@ def evaluate(
     near = d < np.maximum(3.0 * thr / scale, 2.0 * prep.spacing)
     inl = near & (np.abs(r) * scale < thr)
     inlier_ratio = float(inl.mean()) if len(inl) else 0.0
-    consistency = _consistency(pts, r * scale, near, thr)
+    consistency = _consistency(pts, r * scale, near, thr, neighbours)
     rmse = float(np.sqrt(np.mean((r[inl] * scale) ** 2))) if np.any(inl) else float("inf")
     tol = float(np.median(thr))
     frame_from_object = invert_pose(object_from_frame)
@@ -191,7 +192,16 @@ SMOOTH_K = 16
 SYSTEMATIC_FLOOR_M = 0.0012
 
 
-def _consistency(pts: FloatArray, r: FloatArray, near: BoolArray, thr: FloatArray) -> float:
+def consistency_neighbours(pts: FloatArray) -> IntArray:
+    """(P, k) indices of each point's k = min(16, P) nearest points (itself included), for `evaluate`."""
+    k = min(SMOOTH_K, len(pts))
+    _, idx = cKDTree(pts).query(pts, k=k)
+    return np.asarray(idx, dtype=np.int64).reshape(len(pts), k)
+
+
+def _consistency(
+    pts: FloatArray, r: FloatArray, near: BoolArray, thr: FloatArray, neighbours: IntArray | None = None
+) -> float:
     """Share of points whose neighbourhood-mean residual is within noise: a wrong template leaves
     spatially coherent residuals that averaging does not remove, while sensor noise averages out.
     thr is 2.5 sigma per point; points without a correspondence count as inconsistent."""
@@ -199,7 +209,7 @@ def _consistency(pts: FloatArray, r: FloatArray, near: BoolArray, thr: FloatArra
     if n < 4:
         return 0.0
     k = min(SMOOTH_K, n)
-    _, idx = cKDTree(pts).query(pts, k=k)
+    idx = neighbours if neighbours is not None else consistency_neighbours(pts)
     rr = np.where(near, r, np.nan)[idx]
     cnt = np.sum(np.isfinite(rr), axis=1)
     mean = np.nansum(rr, axis=1) / np.maximum(cnt, 1)
