@@ -156,3 +156,17 @@ def test_configs_clear_is_conservative(bin_cell: CellConfig) -> None:
         assert not np.any(clear & ~exact)
         assert clear.any() and (~exact).any()
     world.detach()
+
+
+def test_symmetric_part_next_to_a_wall_closes_along_it(bin_cell: CellConfig) -> None:
+    """A flat ring 16 mm from the -y wall, turned 15 degrees: the pinches across its outer diameter at the synthesised
+    angles all put the 125 mm palm into the wall; the one turned about the ring's axis to close along the wall
+    (palm parallel to it) is taken."""
+    ring_mesh = trimesh.creation.annulus(r_min=0.018, r_max=0.03, height=0.015)
+    ring = Template("ring", "ring", ring_mesh, shape="ring")
+    pose = make_pose(rotation_from_rotvec([0.0, 0.0, np.deg2rad(15)]), [0.5, -0.15 + 0.03 + 0.016, FLOOR_Z + 0.0075])
+    plan = plan_pick([_fit(ring, pose)], [], bin_cell, PlanOptions())
+    assert plan.status == "ok" and plan.chosen is not None
+    c = plan.chosen.candidate
+    assert "@align" in c.grasp_id
+    assert abs(c.world_from_tcp[1, 0]) < 0.05  # jaws close along x, parallel to the wall

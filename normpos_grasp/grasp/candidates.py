@@ -117,14 +117,14 @@ def _object_grasps_cached(
 
 def _symmetry_axes(template: Template) -> list[tuple[FloatArray, FloatArray]]:
     """(axis (3,), point (3,)) of the template's continuous symmetry axes, object frame; for a 'cylinder' or
-    'sphere' without declared symmetry the axis is inferred from the mesh."""
+    'ring' or 'sphere' without declared symmetry the axis is inferred from the mesh."""
     axes = [
         (np.asarray(a, dtype=np.float64) / np.linalg.norm(a), np.asarray(p, dtype=np.float64))
         for a, p in template.symmetry.continuous
     ]
     if axes:
         return axes
-    if template.shape == "cylinder":
+    if template.shape in ("cylinder", "ring"):
         axis, centre, _, _ = _cylinder_axis(template)
         return [(axis, centre)]
     if template.shape == "sphere":
@@ -210,14 +210,47 @@ def snap_down_batch(
     return out, ok
 
 
+def _align_closing(
+    world_poses: FloatArray, axis_world: tuple[FloatArray, FloatArray], dirs: FloatArray
+) -> list[list[FloatArray | None]]:
+    """Per pose (N, 4, 4), per direction: the pose turned about the symmetry axis (unit axis, point) so that its
+    closing axis x points along the direction (up to sign); None where the approach is not along the axis (within
+    25 degrees), the direction is along the axis, or the pose already closes along it (within 5 degrees)."""
+    axis, point = axis_world
+    out: list[list[FloatArray | None]] = []
+    for pose in world_poses:
+        row: list[FloatArray | None] = []
+        along = abs(float(pose[:3, 2] @ axis)) > np.cos(np.deg2rad(25))
+        for d in dirs:
+            t = d - axis * float(d @ axis)
+            x = pose[:3, 0] - axis * float(pose[:3, 0] @ axis)
+            if not along or np.linalg.norm(t) < 1e-6 or np.linalg.norm(x) < 1e-6:
+                row.append(None)
+                continue
+            t, x = t / np.linalg.norm(t), x / np.linalg.norm(x)
+            angle = float(np.arctan2(np.cross(x, t) @ axis, x @ t))
+            if angle > np.pi / 2:  # jaws are symmetric: the smaller turn to either sign of the direction
+                angle -= np.pi
+            elif angle < -np.pi / 2:
+                angle += np.pi
+            row.append(None if abs(angle) < np.deg2rad(5) else _about(axis, point, angle) @ pose)
+        out.append(row)
+    return out
+
+
 def candidates_for_object(
     target: int,
     template: Template,
     world_from_object: FloatArray,
     tool_kind: str,
     options: CandidateOptions | None = None,
+    closing_dirs: FloatArray | None = None,
 ) -> list[GraspCandidate]:
-    """World grasp candidates for one object posed at `world_from_object` (4, 4), for a tool of `tool_kind`."""
+    """World grasp candidates for one object posed at `world_from_object` (4, 4), for a tool of `tool_kind`.
+
+    closing_dirs (K, 3): world directions (the bin's walls) along which a part with one continuous symmetry axis
+    is also offered its grasps approached along that axis, turned about it so the jaws close along each direction
+    (`@align<k>` in the id): the palm then lies parallel to the wall."""
     opts = options or CandidateOptions()
     out: list[GraspCandidate] = []
     axes_world = [
@@ -232,6 +265,9 @@ def candidates_for_object(
         snapped, has_snap = snap_down_batch(world_poses, axes_world)
     else:
         snapped, has_snap = world_poses, np.zeros(len(world_poses), dtype=bool)
+    aligned = None
+    if closing_dirs is not None and len(axes_world) == 1 and tool_kind == "parallel":
+        aligned = _align_closing(world_poses, axes_world[0], np.asarray(closing_dirs, dtype=np.float64))
     name = template.name
     for k, (g, source, gid, _) in enumerate(grasps):
         synthesized = source == "synthesized"
@@ -252,6 +288,10 @@ def candidates_for_object(
         out.append(GraspCandidate(*fields))
         if has_snap[k]:
             out.append(GraspCandidate(target, name, f"{gid}@down", source, g.scheme, snapped[k], *fields[6:]))
+        if aligned is not None:
+            for m, pose in enumerate(aligned[k]):
+                if pose is not None:
+                    out.append(GraspCandidate(target, name, f"{gid}@align{m}", source, g.scheme, pose, *fields[6:]))
     return out
 
 

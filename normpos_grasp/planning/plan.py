@@ -258,8 +258,12 @@ def plan_pick(
     cand_opts = opts.candidates
     if cell.tool.kind == "parallel" and cand_opts.synthesis.finger_tip_m == 0.0:
         cand_opts = replace(cand_opts, synthesis=replace(cand_opts.synthesis, finger_tip_m=cell.tool.finger_depth_m))
+    # symmetric parts are also offered jaws closing along the bin's walls (palm parallel to the nearest wall)
+    walls = cell.bin.world_from_bin[:3, :2].T.copy() if cell.bin is not None else None
     for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
-        candidates.extend(candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts))
+        candidates.extend(
+            candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
+        )
     timing["candidates"] = (time.perf_counter() - t0) * 1e3
     home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
     return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
