@@ -28,7 +28,7 @@ from normpos_grasp.templates.features import fpfh, ransac_hypotheses, voxel_down
 from normpos_grasp.templates.icp import icp
 from normpos_grasp.templates.model import Template, TemplateFit
 from normpos_grasp.templates.prepared import PreparedTemplate, prepare
-from normpos_grasp.templates.scoring import PoseScore, consistency_neighbours, evaluate, inlier_ratios
+from normpos_grasp.templates.scoring import PoseScore, consistency_neighbours, evaluate, score_bounds
 from normpos_grasp.typing import FloatArray, IntArray
 
 logger = logging.getLogger(__name__)
@@ -437,7 +437,7 @@ def _refine(
     """Fine ICP of (H, 4, 4) poses: (`scored` plus the refined poses that may matter, best first; all refined
     poses (H, 4, 4) and scales (H,) in input order).
 
-    Lazy scoring: a pose's score never exceeds its inlier ratio (one batched query), so poses are scored fully
+    Lazy scoring: a pose's score never exceeds its bound (`score_bounds`, one batched query), so poses are scored fully
     in order of that bound and a pose whose bound is below `ambiguity_ratio` x the best score so far is dropped:
     it can be neither the best nor a rival of it (the best score only grows later), so decisions are unchanged.
     A pose whose bound is below `floor` (set by another template in `fit_best`) is dropped too.
@@ -457,13 +457,15 @@ def _refine(
         max_corr_start=0.15 * prep.diameter,
         trim=opts.fine_trim,
     )
-    bound = inlier_ratios(prep, poses, scales, meas.pts_score, meas.nrm_score, meas.thr_score)
+    bound, res, dist = score_bounds(
+        prep, poses, scales, meas.pts_score, meas.nrm_score, meas.thr_score, meas.neighbours_score
+    )
     out = list(scored)
     best = max((c.score.score for c in out), default=0.0)
     for i in np.argsort(-bound, kind="stable"):
         if (out and bound[i] < opts.ambiguity_ratio * best) or bound[i] < floor:
             break
-        cand = _evaluate(prep, poses[i], float(scales[i]), meas, ctx, cff)
+        cand = _evaluate(prep, poses[i], float(scales[i]), meas, ctx, cff, (res[i], dist[i]))
         out.append(cand)
         best = max(best, cand.score.score)
     out.sort(key=lambda c: c.score.score, reverse=True)
@@ -506,6 +508,7 @@ def _evaluate(
     meas: _Measured,
     ctx: FitContext | None,
     cff: FloatArray | None,
+    corr: tuple[FloatArray, FloatArray] | None = None,
 ) -> _Candidate:
     sc = evaluate(
         prep,
@@ -520,6 +523,7 @@ def _evaluate(
         depth_m=ctx.depth_m if ctx is not None else None,
         camera_from_frame=cff,
         neighbours=meas.neighbours_score,
+        corr=corr,
     )
     return _Candidate(pose, scale, sc)
 

@@ -64,31 +64,54 @@ def visible_samples(
     return visible, pc
 
 
-def inlier_ratios(
+def score_bounds(
     prep: PreparedTemplate,
     object_from_frame: FloatArray,
     scales: FloatArray,
     pts: FloatArray,
     nrm: FloatArray,
     thr: FloatArray,
-) -> FloatArray:
-    """(H,) inlier ratios of (H, 4, 4) poses with (H,) scales, exactly as `evaluate` computes them (one batch).
+    neighbours: IntArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Upper bounds (H,) of `evaluate`'s score for (H, 4, 4) poses with (H,) scales, from one batched query.
 
-    `evaluate`'s score is the inlier ratio times factors in [0, 1], so this is an upper bound of the score:
-    a pose whose bound is below a threshold can be dropped without scoring it fully.
+    The bound is the score with perfect coverage and no free-space violation (inliers, RMSE and consistency
+    exactly as `evaluate` computes them), so a pose whose bound is below a threshold can be dropped without
+    the costly visibility tests. Also returns the residuals r (H, P) and distances d (H, P) for `evaluate`.
     """
     h, p = len(object_from_frame), len(pts)
     if h == 0 or p == 0:
-        return np.zeros(h)
+        return np.zeros(h), np.zeros((h, p)), np.full((h, p), np.inf)
     rot = object_from_frame[:, :3, :3]
     y = (np.einsum("hij,pj->hpi", rot, pts) + object_from_frame[:, None, :3, 3]) / scales[:, None, None]
     ny = np.einsum("hij,pj->hpi", rot, nrm)
     r, d, _ = correspond(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=True)
     r = r.reshape(h, p)
     d = d.reshape(h, p)
-    near = d < np.maximum(3.0 * thr[None] / scales[:, None], 2.0 * prep.spacing)
-    inl = near & (np.abs(r) * scales[:, None] < thr[None])
-    return np.asarray(inl.mean(axis=1), dtype=np.float64)
+    tol = float(np.median(thr))
+    bound = np.zeros(h)
+    for i in range(h):
+        ir, rmse, consistency, _ = _fit_stats(prep, r[i], d[i], float(scales[i]), pts, thr, neighbours)
+        bound[i] = _combine(ir, rmse, 1.0, 0.0, tol) * consistency
+    return bound, r, d
+
+
+def _fit_stats(
+    prep: PreparedTemplate,
+    r: FloatArray,
+    d: FloatArray,
+    scale: float,
+    pts: FloatArray,
+    thr: FloatArray,
+    neighbours: IntArray | None,
+) -> tuple[float, float, float, BoolArray]:
+    """Inlier ratio, inlier RMSE (metres), consistency and the inlier mask from (P,) residuals / distances."""
+    near = d < np.maximum(3.0 * thr / scale, 2.0 * prep.spacing)
+    inl = near & (np.abs(r) * scale < thr)
+    inlier_ratio = float(inl.mean()) if len(inl) else 0.0
+    consistency = _consistency(pts, r * scale, near, thr, neighbours)
+    rmse = float(np.sqrt(np.mean((r[inl] * scale) ** 2))) if np.any(inl) else float("inf")
+    return inlier_ratio, rmse, consistency, inl
 
 
 def evaluate(
@@ -105,21 +128,23 @@ def evaluate(
     depth_m: FloatArray | None = None,
     camera_from_frame: FloatArray | None = None,
     neighbours: IntArray | None = None,
+    corr: tuple[FloatArray, FloatArray] | None = None,
 ) -> PoseScore:
     """Score one pose. pts/nrm (P, 3): measured points/normals used for inliers; thr (P,) inlier distances.
 
     meas_tree: KD-tree over ALL measured points (frame). With camera + depth_m (H, W metres) +
     camera_from_frame, coverage and free space use the depth image (occlusion aware, sees the whole
     silhouette); without, a virtual camera at `viewpoint` and the measured points themselves.
+    neighbours: `consistency_neighbours(pts)` when precomputed; corr: (P,) residuals and distances of `pts`
+    at this pose when precomputed (`score_bounds`).
     """
-    y = (pts @ object_from_frame[:3, :3].T + object_from_frame[:3, 3]) / scale
-    ny = nrm @ object_from_frame[:3, :3].T
-    r, d, _ = correspond(prep, y, ny, exact=True)
-    near = d < np.maximum(3.0 * thr / scale, 2.0 * prep.spacing)
-    inl = near & (np.abs(r) * scale < thr)
-    inlier_ratio = float(inl.mean()) if len(inl) else 0.0
-    consistency = _consistency(pts, r * scale, near, thr, neighbours)
-    rmse = float(np.sqrt(np.mean((r[inl] * scale) ** 2))) if np.any(inl) else float("inf")
+    if corr is None:
+        y = (pts @ object_from_frame[:3, :3].T + object_from_frame[:3, 3]) / scale
+        ny = nrm @ object_from_frame[:3, :3].T
+        r, d, _ = correspond(prep, y, ny, exact=True)
+    else:
+        r, d = corr
+    inlier_ratio, rmse, consistency, _ = _fit_stats(prep, r, d, scale, pts, thr, neighbours)
     tol = float(np.median(thr))
     frame_from_object = invert_pose(object_from_frame)
     if camera is not None and depth_m is not None and camera_from_frame is not None:
