@@ -212,30 +212,34 @@ def snap_down_batch(
 
 def _align_closing(
     world_poses: FloatArray, axis_world: tuple[FloatArray, FloatArray], dirs: FloatArray
-) -> list[list[FloatArray | None]]:
-    """Per pose (N, 4, 4), per direction: the pose turned about the symmetry axis (unit axis, point) so that its
-    closing axis x points along the direction (up to sign); None where the approach is not along the axis (within
-    25 degrees), the direction is along the axis, or the pose already closes along it (within 5 degrees)."""
+) -> tuple[FloatArray, FloatArray]:
+    """The poses (N, 4, 4) turned about the symmetry axis (unit axis, point) so that their closing axis x points
+    along each direction (K, 3) (up to sign): (turned (N, K, 4, 4), valid (N, K) bool). Not valid where the
+    approach is not along the axis (within 25 degrees), the direction is along the axis, or the pose already
+    closes along it (within 5 degrees)."""
     axis, point = axis_world
-    out: list[list[FloatArray | None]] = []
-    for pose in world_poses:
-        row: list[FloatArray | None] = []
-        along = abs(float(pose[:3, 2] @ axis)) > np.cos(np.deg2rad(25))
-        for d in dirs:
-            t = d - axis * float(d @ axis)
-            x = pose[:3, 0] - axis * float(pose[:3, 0] @ axis)
-            if not along or np.linalg.norm(t) < 1e-6 or np.linalg.norm(x) < 1e-6:
-                row.append(None)
-                continue
-            t, x = t / np.linalg.norm(t), x / np.linalg.norm(x)
-            angle = float(np.arctan2(np.cross(x, t) @ axis, x @ t))
-            if angle > np.pi / 2:  # jaws are symmetric: the smaller turn to either sign of the direction
-                angle -= np.pi
-            elif angle < -np.pi / 2:
-                angle += np.pi
-            row.append(None if abs(angle) < np.deg2rad(5) else _about(axis, point, angle) @ pose)
-        out.append(row)
-    return out
+    n, k = len(world_poses), len(dirs)
+    out = np.repeat(np.asarray(world_poses, dtype=np.float64)[:, None], k, axis=1)
+    along = np.abs(world_poses[:, :3, 2] @ axis) > np.cos(np.deg2rad(25))
+    t = dirs - np.outer(dirs @ axis, axis)  # (K, 3)
+    x = world_poses[:, :3, 0] - np.outer(world_poses[:, :3, 0] @ axis, axis)  # (N, 3)
+    nt, nx = np.linalg.norm(t, axis=1), np.linalg.norm(x, axis=1)
+    valid = along[:, None] & (nt[None] > 1e-6) & (nx[:, None] > 1e-6)
+    if not valid.any():
+        return out, valid
+    t = t / np.maximum(nt, 1e-12)[:, None]
+    x = x / np.maximum(nx, 1e-12)[:, None]
+    angle = np.arctan2(np.cross(x[:, None], t[None]) @ axis, x @ t.T)  # (N, K)
+    angle = np.where(angle > np.pi / 2, angle - np.pi, np.where(angle < -np.pi / 2, angle + np.pi, angle))
+    valid &= np.abs(angle) >= np.deg2rad(5)
+    kx = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    rot = (
+        np.eye(3) + np.sin(angle)[..., None, None] * kx + (1.0 - np.cos(angle))[..., None, None] * (kx @ kx)
+    )  # (N, K, 3, 3)
+    out[..., :3, :3] = rot @ out[..., :3, :3]
+    out[..., :3, 3] = np.einsum("nkij,nkj->nki", rot, out[..., :3, 3] - point) + point
+    del n
+    return out, valid
 
 
 def candidates_for_object(
@@ -289,9 +293,10 @@ def candidates_for_object(
         if has_snap[k]:
             out.append(GraspCandidate(target, name, f"{gid}@down", source, g.scheme, snapped[k], *fields[6:]))
         if aligned is not None:
-            for m, pose in enumerate(aligned[k]):
-                if pose is not None:
-                    out.append(GraspCandidate(target, name, f"{gid}@align{m}", source, g.scheme, pose, *fields[6:]))
+            for m in np.flatnonzero(aligned[1][k]):
+                out.append(
+                    GraspCandidate(target, name, f"{gid}@align{m}", source, g.scheme, aligned[0][k, m], *fields[6:])
+                )
     return out
 
 
