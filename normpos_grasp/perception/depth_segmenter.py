@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.errors import InputError
@@ -36,9 +37,14 @@ class DepthSegmenterOptions:
         stride: work on every stride-th pixel (2: 640x480 -> 320x240).
         plane_tolerance_m: a point within this distance of a support plane belongs to it, metres.
         plane_noise_factor: adds this times the stereo RMS z^2 * 0.0026 / m to the plane tolerance.
+        fit_tolerance_m: the tighter tolerance (plus the same noise term) with which planes are fitted (RANSAC and
+            least-squares refinement), metres; it keeps a bin floor and the table just below it from being fitted
+            as one tilted compromise plane.
         min_plane_fraction: a further plane (after the first) is removed only if it holds this fraction of the
             valid pixels; of its inliers only connected regions of at least min_plane_area_m2 (m^2, larger than
             any part face) are removed.
+        plane_normal_deg: a pixel joins a further plane's inlier region only if its normal is within this angle of
+            the plane's normal, degrees.
         ransac_iterations: plane hypotheses per RANSAC run; ransac_samples: points scored per hypothesis.
         depth_jump_m: neighbours (at working resolution) whose depths differ by more are separated, metres;
             depth_jump_rel: plus this fraction of the depth.
@@ -48,15 +54,21 @@ class DepthSegmenterOptions:
         smooth_depth_m: range sigma of the bilateral filter applied before normals, metres.
         normal_step: normals from central differences over +-normal_step working pixels.
         min_pixels: smallest instance, full-resolution pixels.
-        rim_width_m / rim_length_m: components thinner than rim_width_m and longer than rim_length_m are taken
-            for wall rims and dropped, metres.
+        rim_width_m / rim_length_m / rim_elongation: components thinner than rim_width_m and longer than both
+            rim_length_m and rim_elongation times their width are taken
+            for wall rims or rails and dropped, metres.
         max_extent_m: components longer than this are static structure and dropped, metres.
+        merge_max_extent_m: touching components whose shared boundary is mostly free of depth jumps are merged
+            when the union is at most this long (the largest part), metres; 0 turns merging off.
+        merge_max_jump_fraction: the largest fraction of boundary pixel pairs with a depth jump for a merge.
         seed: RNG seed of the RANSAC (a private generator; the global RNG is untouched).
     """
 
     stride: int = 2
     plane_tolerance_m: float = 0.003
     plane_noise_factor: float = 1.5
+    fit_tolerance_m: float = 0.0012
+    plane_normal_deg: float = 90.0
     min_plane_fraction: float = 0.05
     min_plane_area_m2: float = 0.012
     ransac_iterations: int = 96
@@ -64,13 +76,16 @@ class DepthSegmenterOptions:
     depth_jump_m: float = 0.006
     depth_jump_rel: float = 0.005
     crease_angle_deg: float = 35.0
-    steep_faces: bool = False
+    steep_faces: bool = True
     smooth_depth_m: float = 0.01
     normal_step: int = 2
     min_pixels: int = 150
     rim_width_m: float = 0.016
     rim_length_m: float = 0.12
+    rim_elongation: float = 3.0
     max_extent_m: float = 0.25
+    merge_max_extent_m: float = 0.08
+    merge_max_jump_fraction: float = 0.2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -115,6 +130,90 @@ def ransac_plane(
     if d < 0:  # orient towards the camera origin: n . 0 + d > 0
         n, d = -n, -d
     return n, d, int((np.abs(sub @ n + d) < sub_tol).sum())
+
+
+def refine_plane(
+    points: np.ndarray, tolerance: np.ndarray, n: FloatArray, d: float, rounds: int = 2
+) -> tuple[FloatArray, float]:
+    """Least-squares refit of plane (n, d) on all of the (N, 3) `points` within `tolerance` (N,) metres of it,
+    `rounds` times; the normal keeps its orientation towards the camera origin."""
+    for _ in range(rounds):
+        inl = np.abs(points @ n + d) < tolerance
+        if inl.sum() < 3:
+            break
+        sub = points[inl]
+        if len(sub) > 20000:
+            sub = sub[:: len(sub) // 20000 + 1]
+        n, d = _fit_plane(sub.astype(np.float64))
+        if d < 0:
+            n, d = -n, -d
+    return n, d
+
+
+def merge_continuous(
+    lab: np.ndarray, z: np.ndarray, jump_thr: np.ndarray, fx: float, max_extent_m: float, max_jump_fraction: float
+) -> np.ndarray:
+    """Merge touching components of the (h, w) int32 label image `lab` whose shared boundary is mostly free of
+    depth jumps (a crease inside one part, like the inner corner of an L-bracket or a face cut off at a steep
+    view) when the union stays within `max_extent_m` (metres, the size of the largest part); z: (h, w) depth, metres;
+    jump_thr: (h, w) depth-jump threshold, metres; fx: focal length at this resolution, pixels. Returns a new label
+    image (labels renumbered 1..K)."""
+    n = int(lab.max())
+    if n < 2:
+        return lab
+    pairs = []
+    for axis in (0, 1):
+        for off in (1, 2):
+            a = lab[:-off] if axis == 0 else lab[:, :-off]
+            b = lab[off:] if axis == 0 else lab[:, off:]
+            za = z[:-off] if axis == 0 else z[:, :-off]
+            zb = z[off:] if axis == 0 else z[:, off:]
+            tt = jump_thr[:-off] if axis == 0 else jump_thr[:, :-off]
+            m = (a != b) & (a > 0) & (b > 0)
+            if m.any():
+                jump = np.abs(za[m] - zb[m]) > tt[m] * off
+                lo, hi = np.minimum(a[m], b[m]), np.maximum(a[m], b[m])
+                pairs.append(np.column_stack([lo, hi, jump]))
+    if not pairs:
+        return lab
+    pr = np.concatenate(pairs)
+    key = pr[:, 0].astype(np.int64) * (n + 1) + pr[:, 1]
+    uniq, inv = np.unique(key, return_inverse=True)
+    contact = np.bincount(inv)
+    jumps = np.bincount(inv, weights=pr[:, 2])
+    parent = np.arange(n + 1)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    objs = ndimage.find_objects(lab)
+    order = np.argsort(-contact)
+    for k in order:
+        if contact[k] < 4 or jumps[k] > max_jump_fraction * contact[k]:
+            continue
+        i, j = find(int(uniq[k] // (n + 1))), find(int(uniq[k] % (n + 1)))
+        if i == j:
+            continue
+        members = [c for c in range(1, n + 1) if find(c) in (i, j)]
+        pts, zs = [], []
+        for c in members:
+            sl = objs[c - 1]
+            if sl is None:
+                continue
+            ys, xs = np.nonzero(lab[sl] == c)
+            pts.append(np.column_stack([xs + sl[1].start, ys + sl[0].start]))
+            zs.append(z[sl][ys, xs])
+        allp = np.concatenate(pts).astype(np.float32)
+        (_, _), (rw, rh), _ = cv2.minAreaRect(allp)
+        if max(rw, rh) * float(np.median(np.concatenate(zs))) / fx <= max_extent_m:
+            parent[j] = i
+    roots = np.array([find(c) for c in range(n + 1)])
+    roots[0] = 0
+    _, new = np.unique(roots, return_inverse=True)
+    return new.astype(np.int32)[lab]
 
 
 class DepthSegmenter:
@@ -167,41 +266,6 @@ class DepthSegmenter:
         pts[..., 1] = vv[:, None] * zm
         pts[..., 2] = zm
 
-        # 2. support planes
-        rng = np.random.default_rng(o.seed)
-        sigma = 0.0026 * zm * zm
-        tol_img = o.plane_tolerance_m + o.plane_noise_factor * sigma
-        flat_idx = np.flatnonzero(valid)
-        p_valid = pts.reshape(-1, 3)[flat_idx]
-        t_valid = tol_img.reshape(-1)[flat_idx]
-        n1, d1, _ = ransac_plane(p_valid, t_valid, o.ransac_iterations, o.ransac_samples, rng)
-        sd = p_valid @ n1 + d1
-        removed = sd < t_valid  # on the first plane or behind it
-        px_area = (zm.reshape(-1)[flat_idx] / fx) ** 2  # m^2 seen by each working pixel (fronto-parallel)
-        for _ in range(3):
-            rest = np.flatnonzero(~removed)
-            if len(rest) < o.min_plane_fraction * len(flat_idx):
-                break
-            n, d, support = ransac_plane(p_valid[rest], t_valid[rest], o.ransac_iterations, o.ransac_samples, rng)
-            frac = support / min(o.ransac_samples, len(rest)) * len(rest) / len(flat_idx)
-            cosang = abs(float(n @ n1))
-            if frac < o.min_plane_fraction or 0.2 < cosang < 0.95:
-                break
-            # remove only connected inlier regions larger than any part face (tops of parts at one height are not
-            # a support surface)
-            inl = np.zeros(h * w, np.uint8)
-            inl[flat_idx[rest[np.abs(p_valid[rest] @ n + d) < t_valid[rest]]]] = 1
-            ncc, cc = cv2.connectedComponents(inl.reshape(h, w), connectivity=8)
-            area = np.bincount(cc.reshape(-1)[flat_idx], weights=px_area, minlength=ncc)
-            big = area >= o.min_plane_area_m2
-            big[0] = False
-            if not big[1:].any():
-                break
-            removed |= big[cc.reshape(-1)[flat_idx]]
-        fg = np.zeros(h * w, bool)
-        fg[flat_idx[~removed]] = True
-        fg = fg.reshape(h, w)
-
         # 1. normals from edge-preserving smoothed depth, central differences over +-normal_step px
         zb = cv2.bilateralFilter(zm, 7, o.smooth_depth_m, 3.0)
         zb = np.where(zm > 0, zb, zm)
@@ -218,6 +282,49 @@ class DepthSegmenter:
         nrm /= np.linalg.norm(nrm, axis=2, keepdims=True) + 1e-12
         flip = np.einsum("ijk,ijk->ij", nrm, ps) > 0
         nrm[flip] *= -1
+
+        # 2. support planes
+        rng = np.random.default_rng(o.seed)
+        sigma = 0.0026 * zm * zm
+        tol_img = o.plane_tolerance_m + o.plane_noise_factor * sigma
+        flat_idx = np.flatnonzero(valid)
+        p_valid = pts.reshape(-1, 3)[flat_idx]
+        t_valid = tol_img.reshape(-1)[flat_idx]
+        f_valid = t_valid - (o.plane_tolerance_m - o.fit_tolerance_m)
+        n1, d1, _ = ransac_plane(p_valid, f_valid, o.ransac_iterations, o.ransac_samples, rng)
+        n1, d1 = refine_plane(p_valid, f_valid, n1, d1)
+        sd = p_valid @ n1 + d1
+        removed = sd < t_valid  # on the first plane or behind it
+        cos_plane = np.float32(np.cos(np.radians(o.plane_normal_deg)))
+        px_area = (zm.reshape(-1)[flat_idx] / fx) ** 2  # m^2 seen by each working pixel (fronto-parallel)
+        for _ in range(3):
+            rest = np.flatnonzero(~removed)
+            if len(rest) < o.min_plane_fraction * len(flat_idx):
+                break
+            n, d, _ = ransac_plane(p_valid[rest], f_valid[rest], o.ransac_iterations, o.ransac_samples, rng)
+            n, d = refine_plane(p_valid[rest], f_valid[rest], n, d)
+            on_plane = np.abs(p_valid[rest] @ n + d) < t_valid[rest]
+            frac = on_plane.sum() / len(flat_idx)
+            cosang = abs(float(n @ n1))
+            if frac < o.min_plane_fraction or 0.2 < cosang < 0.95:
+                break
+            # remove only connected inlier regions larger than any part face (tops of parts at one height are not
+            # a support surface)
+            inl = np.zeros(h * w, np.uint8)
+            # inliers whose normal agrees with the plane's: a curved part touching a rail at the rail's height
+            # does not join the rail's region
+            agree = np.abs(nrm.reshape(-1, 3)[flat_idx[rest]] @ n.astype(np.float32)) > cos_plane
+            inl[flat_idx[rest[on_plane & agree]]] = 1
+            ncc, cc = cv2.connectedComponents(inl.reshape(h, w), connectivity=8)
+            area = np.bincount(cc.reshape(-1)[flat_idx], weights=px_area, minlength=ncc)
+            big = area >= o.min_plane_area_m2
+            big[0] = False
+            if not big[1:].any():
+                break
+            removed |= big[cc.reshape(-1)[flat_idx]]
+        fg = np.zeros(h * w, bool)
+        fg[flat_idx[~removed]] = True
+        fg = fg.reshape(h, w)
 
         # 3. edges
         edge = np.zeros((h, w), bool)
@@ -271,23 +378,28 @@ class DepthSegmenter:
         grow = fg & (lab == 0) & (dist <= 3.0)
         lab[grow] = pix_label[nearest[grow]]
 
+        if o.merge_max_extent_m > 0:
+            lab = merge_continuous(lab, zm, jump_thr, fx, o.merge_max_extent_m, o.merge_max_jump_fraction)
+
         # size / shape filters in metres
-        final = np.zeros(count, np.int32)
+        final = np.zeros(int(lab.max()) + 1, np.int32)
         next_id = 0
-        for comp in np.flatnonzero(keep):
-            x0, y0 = stats[comp, cv2.CC_STAT_LEFT], stats[comp, cv2.CC_STAT_TOP]
-            x1, y1 = x0 + stats[comp, cv2.CC_STAT_WIDTH], y0 + stats[comp, cv2.CC_STAT_HEIGHT]
-            ys, xs = np.nonzero(lab[max(0, y0 - 4) : y1 + 4, max(0, x0 - 4) : x1 + 4] == comp)
+        for comp0, sl in enumerate(ndimage.find_objects(lab)):
+            if sl is None:
+                continue
+            ys, xs = np.nonzero(lab[sl] == comp0 + 1)
             if len(ys) < min_px:
                 continue
-            zmed = float(np.median(zm[ys + max(0, y0 - 4), xs + max(0, x0 - 4)]))
+            zmed = float(np.median(zm[sl][ys, xs]))
             m_per_px = zmed / fx
             (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
             short, long_ = sorted((rw * m_per_px, rh * m_per_px))
-            if long_ > o.max_extent_m or (short < o.rim_width_m and long_ > o.rim_length_m):
+            if long_ > o.max_extent_m or (
+                short < o.rim_width_m and long_ > max(o.rim_length_m, o.rim_elongation * short)
+            ):
                 continue
             next_id += 1
-            final[comp] = next_id
+            final[comp0 + 1] = next_id
         lab = final[lab]
         if next_id == 0:
             return np.zeros((h0, w0), np.int32), 0
