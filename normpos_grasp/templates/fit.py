@@ -49,6 +49,8 @@ class FitOptions:
             of the fine stage use exact KD-tree correspondences (the others a distance grid);
             scale_iterations: extra iterations that also fit the size factor.
         n_refine: distinct coarse hypotheses refined exactly.
+        coarse_prune_after / coarse_keep / flip_keep: after `coarse_prune_after` coarse iterations only the
+            best `coarse_keep` starting poses (`flip_keep` turned copies) by inlier fraction go on (0 = all).
         fine_trim: share of correspondences kept (smallest residuals) in the fine ICP; the rest is trimmed.
         n_flip_variants: turned copies of the best pose (24 axis assignments, coarse-fitted) also refined
             and scored, so a view-induced wrong basin is caught by the ambiguity test (0 disables).
@@ -80,6 +82,9 @@ class FitOptions:
     exact_iterations: int = 4
     scale_iterations: int = 8
     n_refine: int = 3
+    coarse_prune_after: int = 2
+    coarse_keep: int = 16
+    flip_keep: int = 10
     n_flip_variants: int = 4
     fine_trim: float = 0.95
     scale_rmse_gain: float = 0.97
@@ -375,6 +380,8 @@ def _fit_candidates(
         fit_scale=False,
         scale_tolerance=opts.scale_tolerance,
         max_corr_start=0.25 * prep.diameter,
+        prune_after=opts.coarse_prune_after,
+        prune_keep=opts.coarse_keep,
     )
     keep = _distinct(poses, frac, prep, opts.n_refine)
     cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
@@ -406,6 +413,8 @@ def _fit_candidates(
             fit_scale=False,
             scale_tolerance=opts.scale_tolerance,
             max_corr_start=0.25 * prep.diameter,
+            prune_after=opts.coarse_prune_after,
+            prune_keep=opts.flip_keep,
         )
         pick = [i for i in _distinct(vp, vf, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
         pick = pick[: opts.n_flip_variants]
@@ -536,19 +545,17 @@ def _pca_hypotheses(prep: PreparedTemplate, meas: _Measured) -> FloatArray:
     am = v[:, np.argsort(w)[::-1]]
     if np.linalg.det(am) < 0:
         am[:, 2] *= -1
-    out = []
     view = c - meas.viewpoint
     view = view / max(float(np.linalg.norm(view)), 1e-12)
-    for d in _SIGNED_PERMS:
-        rot = prep.axes @ d @ am.T  # object_from_frame rotation
-        v_obj = rot @ view
-        vis = prep.normals @ v_obj < -0.1
-        cv = prep.samples[vis].mean(axis=0) if np.any(vis) else prep.centroid
-        pose = np.eye(4)
-        pose[:3, :3] = rot
-        pose[:3, 3] = cv - rot @ c
-        out.append(pose)
-    return np.array(out)
+    rots = np.einsum("ij,njk,kl->nil", prep.axes, np.array(_SIGNED_PERMS), am.T)  # object_from_frame rotations
+    v_obj = rots @ view  # (24, 3) viewing direction in the object frame
+    vis = (prep.normals @ v_obj.T < -0.1).astype(np.float64)  # (S, 24) samples facing the camera
+    cnt = vis.sum(axis=0)
+    cv = np.where(cnt[:, None] > 0, (vis.T @ prep.samples) / np.maximum(cnt, 1.0)[:, None], prep.centroid)
+    out = np.tile(np.eye(4), (len(rots), 1, 1))
+    out[:, :3, :3] = rots
+    out[:, :3, 3] = cv - rots @ c
+    return out
 
 
 def _signed_perms() -> list[FloatArray]:

@@ -82,6 +82,8 @@ def icp(
     exact_last: int = 0,
     point_weight: float = 0.05,
     converge_m: float | None = None,
+    prune_after: int = 0,
+    prune_keep: int = 0,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Refine (H, 4, 4) `object_from_frame` poses and (H,) scales on (P, 3) points/normals.
 
@@ -93,6 +95,9 @@ def icp(
     converge_m: once the gate is at its floor and no hypothesis moves more than this (metres, rotation taken
     at one diameter; default 2e-6 diameter), the grid stage ends early (the exact stage follows) and the
     exact stage stops.
+    prune_after / prune_keep: after `prune_after` iterations only the `prune_keep` hypotheses with the highest
+    inlier fraction go on (early rejection of hopeless starting poses; 0 = off). The returned arrays then
+    hold only the kept hypotheses.
     Returns poses, scales and the (H,) inlier fraction at the last iteration.
     """
     poses = poses.copy()
@@ -188,6 +193,11 @@ def icp(
         if it < iterations - 1:
             gate = max(gate * ratio, gate_end)
         it += 1
+        if prune_after and it == prune_after and h > prune_keep > 0:
+            top = np.sort(np.argsort(-frac, kind="stable")[:prune_keep])
+            poses, scales, frac = poses[top], scales[top], frac[top]
+            h = len(poses)
+            continue
         # converged (motion of every hypothesis below `converge`, gate at its floor): the correspondences and
         # so the poses would not change any more; go on with the exact stage or stop
         moved = float(
