@@ -170,3 +170,22 @@ def test_symmetric_part_next_to_a_wall_closes_along_it(bin_cell: CellConfig) -> 
     c = plan.chosen.candidate
     assert "@align" in c.grasp_id
     assert abs(c.world_from_tcp[1, 0]) < 0.05  # jaws close along x, parallel to the wall
+
+
+def test_noise_margin_keeps_the_tool_off_neighbours(bin_cell: CellConfig) -> None:
+    """A neighbour 1 mm beside a jaw's outer face: free for the exact tool, a hit for the tool grown by the 2 mm
+    noise margin; 3 mm away it is free for both."""
+    from normpos_grasp.collision.world import CollisionWorld
+
+    opening = 0.05
+    finger = next(s for s in bin_cell.tool.shapes if s.moves > 0)
+    outer = opening / 2 + finger.size[0]  # right jaw's outer face, TCP x
+    z = float(finger.tcp_from_shape[2, 3])
+    for gap, margin_hit in ((0.001, True), (0.003, False)):
+        world = CollisionWorld()
+        world.add_box("n", make_pose(None, [outer + gap + 0.01, 0.0, z]), (0.02, 0.02, 0.02), "object")
+        world.set_tool(bin_cell.tool, noise_margin_m=0.002)
+        assert world.check_tool(np.eye(4), opening) is None
+        hit = world.check_tool(np.eye(4), opening, margin=True)
+        assert (hit is not None) == margin_hit
+        assert hit is None or hit.reason == "collision_object"

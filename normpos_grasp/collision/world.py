@@ -149,6 +149,21 @@ def obb_overlap(
     return ~sep
 
 
+def _grown_tool(tool: ToolModel, by_m: float) -> list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]]:
+    """(object, tcp_from_shape at zero opening, size, moves) of the tool's shapes grown by `by_m` on every side;
+    jaw fingers grow outwards only (their inner faces stay where they are)."""
+    out = []
+    for s in tool.shapes:
+        size = np.asarray(s.size, dtype=np.float64)
+        grown = size + (2 * by_m if s.kind == "box" else np.array([by_m, 2 * by_m])[: len(size)])
+        pose = np.array(s.tcp_from_shape, dtype=np.float64)
+        if s.moves:  # thicker by by_m and shifted out by half of it: the outer face moves by_m, the inner stays
+            grown[0] = size[0] + by_m
+            pose[0, 3] += s.moves * by_m / 2.0
+        out.append((fcl.CollisionObject(_geometry(s.kind, grown), fcl.Transform()), pose, grown, s.moves))
+    return out
+
+
 def bounding_radius(kind: str, size: Any) -> float:
     """Radius of the sphere about a primitive's centre that encloses it, m."""
     v = [float(x) for x in size]
@@ -185,6 +200,9 @@ class CollisionWorld:
     _tool_objs_inflated: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
     _tool_radii: FloatArray = field(default_factory=lambda: np.zeros(0))
     _tool_radii_inflated: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _tool_objs_margin: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
+    _tool_local_margin: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    _tool_radii_margin: FloatArray = field(default_factory=lambda: np.zeros(0))
     _arm_radii: FloatArray = field(default_factory=lambda: np.zeros(0))
     _pair_mask: Any = None
     _low_links: Any = None
@@ -324,12 +342,13 @@ class CollisionWorld:
         self._pair_mask = mask
         self._low_links = np.array([i for i, s in enumerate(arm.shapes) if s.joint < 3], dtype=np.int64)
 
-    def set_tool(self, tool: ToolModel, clearance_m: float = 0.01) -> None:
+    def set_tool(self, tool: ToolModel, clearance_m: float = 0.01, noise_margin_m: float = 0.002) -> None:
         """Use `tool`'s shapes as moving collision objects; a copy grown by `clearance_m` on every side answers
-        clearance questions (`check_tool(..., inflated=True)`) without distance queries."""
+        clearance questions (`check_tool(..., inflated=True)`) without distance queries, and one grown by
+        `noise_margin_m` keeps the tool that far from neighbours despite fitted-pose noise
+        (`check_tool(..., margin=True)`). Jaw fingers grow outwards only (their inner faces stay put)."""
         self.tool = tool
         self._tool_objs = []
-        self._tool_objs_inflated = []
         for s in tool.shapes:
             size = np.asarray(s.size, dtype=np.float64)
             self._tool_objs.append(
@@ -340,21 +359,16 @@ class CollisionWorld:
                     s.moves,
                 )
             )
-            grown = size + (
-                2 * clearance_m if s.kind == "box" else np.array([clearance_m, 2 * clearance_m])[: len(size)]
-            )
-            pose = np.array(s.tcp_from_shape, dtype=np.float64)
-            if s.moves:  # keep the inner jaw face where it is: grow outwards only
-                pose[0, 3] += s.moves * clearance_m
-            self._tool_objs_inflated.append(
-                (fcl.CollisionObject(_geometry(s.kind, grown), fcl.Transform()), pose, grown, s.moves)
-            )
+        self._tool_objs_inflated = _grown_tool(tool, clearance_m)
+        self._tool_objs_margin = _grown_tool(tool, noise_margin_m)
         self._tool_radii = np.array([bounding_radius(s.kind, s.size) for s in tool.shapes])
         self._tool_local = np.stack([o[1] for o in self._tool_objs])
         self._tool_local_inflated = np.stack([o[1] for o in self._tool_objs_inflated])
+        self._tool_local_margin = np.stack([o[1] for o in self._tool_objs_margin])
         self._tool_moves = np.array([float(s.moves) for s in tool.shapes])
         self._tool_finger_half = np.array([s.size[0] / 2.0 if s.moves else 0.0 for s in tool.shapes])
         self._tool_radii_inflated = self._tool_radii + np.sqrt(3) * clearance_m
+        self._tool_radii_margin = self._tool_radii + np.sqrt(3) * noise_margin_m
 
     def attach(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> None:
         """Hold `mesh` rigidly in the tool (after a grasp); it then moves with the TCP in arm queries."""
@@ -455,21 +469,30 @@ class CollisionWorld:
         return ""
 
     def _pose_tool(
-        self, world_from_tcp: FloatArray, opening_m: float, inflated: bool = False, only_near: bool = False
+        self,
+        world_from_tcp: FloatArray,
+        opening_m: float,
+        inflated: bool = False,
+        only_near: bool = False,
+        margin: bool = False,
     ) -> list[fcl.CollisionObject]:
         """Pose all tool shapes (self-collision reads them); return those to query: with `only_near`, only shapes
-        whose bounding sphere touches some element's box."""
-        objs = self._tool_objs_inflated if inflated else self._tool_objs
-        radii = self._tool_radii_inflated if inflated else self._tool_radii
-        local = self._tool_local_inflated if inflated else self._tool_local
-        if not inflated:
+        whose bounding sphere touches some element's box. `inflated` / `margin`: the grown copies instead."""
+        if inflated:
+            objs, radii, local = self._tool_objs_inflated, self._tool_radii_inflated, self._tool_local_inflated
+        elif margin:
+            objs, radii, local = self._tool_objs_margin, self._tool_radii_margin, self._tool_local_margin
+        else:
+            objs, radii, local = self._tool_objs, self._tool_radii, self._tool_local
+        grown = inflated or margin
+        if not grown:
             self._last_opening = opening_m
         if self._tool_moves.any():
             local = local.copy()
             local[:, 0, 3] += self._tool_moves * (opening_m / 2.0 + self._tool_finger_half)
         poses = world_from_tcp @ local
         centres = poses[:, :3, 3]
-        if not inflated:
+        if not grown:
             self._tool_centres = centres
         keep = self.near(centres, radii) if only_near else np.ones(len(poses), dtype=bool)
         out = []
@@ -480,13 +503,20 @@ class CollisionWorld:
         return out
 
     def check_tool(
-        self, world_from_tcp: ArrayLike, opening_m: float = 0.0, skip: Sequence[str] = (), inflated: bool = False
+        self,
+        world_from_tcp: ArrayLike,
+        opening_m: float = 0.0,
+        skip: Sequence[str] = (),
+        inflated: bool = False,
+        margin: bool = False,
     ) -> Hit | None:
         """First hit of the tool at `world_from_tcp` (4, 4) and jaw opening `opening_m` (m), or None; `inflated`
-        uses the tool grown by the clearance given to `set_tool` (a hit then means 'closer than the clearance')."""
+        uses the tool grown by the clearance given to `set_tool` (a hit then means 'closer than the clearance'),
+        `margin` the one grown by the noise margin."""
         if self.tool is None:
             raise InputError("check_tool needs a tool: call set_tool first")
-        for obj in self._pose_tool(np.asarray(world_from_tcp, dtype=np.float64), opening_m, inflated, True):
+        pose = np.asarray(world_from_tcp, dtype=np.float64)
+        for obj in self._pose_tool(pose, opening_m, inflated, True, margin):
             what = self._query(obj, skip)
             if what:
                 return Hit("tool", what)

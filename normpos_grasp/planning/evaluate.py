@@ -39,6 +39,8 @@ class EvaluationOptions:
     back by this much along the approach (suction cups and jaw faces touch the target by design), m.
     max_feasible / max_feasible_per_target: stop the collision stage after this many feasible grasps (0: check all).
     clearance: also test the tool grown by the world's clearance (feeds the ranking).
+    noise_margin: check the tool at the grasp against the other objects and clutter grown by the world's noise margin
+    (`CollisionWorld.set_tool(noise_margin_m=...)`, 2 mm: fitted poses are off by about that under D435 noise).
     ik_chunk: candidates solved by IK per batch, in prior order (IK stops with the collision stage).
     tip_margin_m: the tool at the grasp must also clear the cell's boxes when pushed this much further along the
     approach (fitted poses are off by millimetres: fingertips keep this margin above the bin floor), m.
@@ -64,6 +66,7 @@ class EvaluationOptions:
     w_clearance: float = 0.3
     w_height: float = 2.0
     ik_chunk: int = 96
+    noise_margin: bool = True
     tip_margin_m: float = 0.003
     max_raise_m: float = 0.016
     raise_step_m: float = 0.001
@@ -462,6 +465,8 @@ def _check_collisions(
     # (suction cups and jaw pads touch it by design)
     world.disable(target.name)
     hit = world.check_tool(poses[2], c.opening_m)
+    if hit is None and opts.noise_margin:  # neighbours (not the cell: its boxes are exact) with the noise margin
+        hit = world.check_tool(poses[2], c.opening_m, skip=("cell",), margin=True)
     world.enable(target.name)
     if hit is not None:
         return Evaluation(c, False, hit.reason, "grasp", poses)
