@@ -57,6 +57,8 @@ class DepthSegmenterOptions:
         rim_width_m / rim_length_m / rim_elongation: components thinner than rim_width_m and longer than both
             rim_length_m and rim_elongation times their width are taken
             for wall rims or rails and dropped, metres.
+        rim_open_m: before the edges, foreground pixels that an opening with a disk this wide removes are dropped
+            where they form connected pieces longer than rim_length_m (rims, rails), metres; 0 turns it off.
         max_extent_m: components longer than this are static structure and dropped, metres.
         merge_max_extent_m: touching components whose shared boundary is mostly free of depth jumps are merged
             when the union is at most this long (the largest part), metres; 0 turns merging off.
@@ -83,6 +85,7 @@ class DepthSegmenterOptions:
     rim_width_m: float = 0.016
     rim_length_m: float = 0.12
     rim_elongation: float = 3.0
+    rim_open_m: float = 0.012
     max_extent_m: float = 0.25
     merge_max_extent_m: float = 0.08
     merge_max_jump_fraction: float = 0.2
@@ -142,12 +145,36 @@ def refine_plane(
         if inl.sum() < 3:
             break
         sub = points[inl]
-        if len(sub) > 20000:
-            sub = sub[:: len(sub) // 20000 + 1]
+        if len(sub) > 6000:
+            sub = sub[:: len(sub) // 6000 + 1]
         n, d = _fit_plane(sub.astype(np.float64))
         if d < 0:
             n, d = -n, -d
     return n, d
+
+
+def _remove_rims(fg: np.ndarray, z: np.ndarray, fx: float, width_m: float, length_m: float) -> np.ndarray:
+    """`fg` (h, w) bool without its thin, long structures (wall rims, rails, grazing wall faces): pixels that a
+    morphological opening with a disk `width_m` across removes, in connected pieces longer than `length_m` (bounding
+    box diagonal, metres); z: (h, w) depth, metres; fx: focal length at this resolution, pixels."""
+    zmed = float(np.median(z[fg]))
+    k = max(3, int(round(width_m * fx / max(zmed, 1e-3))) | 1)
+    opened = cv2.morphologyEx(fg.astype(np.uint8), cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    thin = fg & (opened == 0)
+    n, cc, stats, _ = cv2.connectedComponentsWithStats(thin.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return fg
+    diag = np.hypot(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) * zmed / fx
+    drop = np.zeros(n, bool)
+    for c in np.flatnonzero(diag > length_m):
+        if c == 0:
+            continue
+        x0, y0 = stats[c, cv2.CC_STAT_LEFT], stats[c, cv2.CC_STAT_TOP]
+        sub = cc[y0 : y0 + stats[c, cv2.CC_STAT_HEIGHT], x0 : x0 + stats[c, cv2.CC_STAT_WIDTH]] == c
+        ys, xs = np.nonzero(sub)
+        (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
+        drop[c] = min(rw, rh) * zmed / fx < 2.0 * width_m  # straight strips only, not chains around parts
+    return fg & ~drop[cc]
 
 
 def merge_continuous(
@@ -232,10 +259,14 @@ class DepthSegmenter:
             return out
         sizes = np.bincount(labels.ravel(), minlength=count + 1)
         order = np.argsort(-sizes[1:], kind="stable") + 1
+        boxes = ndimage.find_objects(labels, max_label=count)
         for k in order:
-            if sizes[k] < self.options.min_pixels:
+            sl = boxes[k - 1]
+            if sizes[k] < self.options.min_pixels or sl is None:
                 continue
-            out.append(Instance(mask=labels == k, label="", score=1.0, instance_id=len(out) + 1))
+            mask = np.zeros(labels.shape, bool)
+            mask[sl] = labels[sl] == k
+            out.append(Instance(mask=mask, label="", score=1.0, instance_id=len(out) + 1))
         return out
 
     def label_image(self, frame: RGBDFrame) -> tuple[np.ndarray, int]:
@@ -325,6 +356,8 @@ class DepthSegmenter:
         fg = np.zeros(h * w, bool)
         fg[flat_idx[~removed]] = True
         fg = fg.reshape(h, w)
+        if o.rim_open_m > 0 and fg.any():
+            fg = _remove_rims(fg, zm, fx, o.rim_open_m, o.rim_length_m)
 
         # 3. edges
         edge = np.zeros((h, w), bool)
