@@ -146,28 +146,10 @@ def icp(
         if point_weight > 0:
             # a light point-to-point term pins the in-plane motions point-to-plane leaves free (one flat face);
             # per point J = [-[y]x, I(, -(y - c))]: J^T W J and J^T W e summed in closed form over the points
-            e = y - m  # (h, p, 3)
-            wp = w * point_weight
-            s0 = wp.sum(1)
-            s1 = (wp[:, None, :] @ y)[:, 0]  # (h, 3) sum w y
-            s2 = (y * wp[..., None]).transpose(0, 2, 1) @ y  # (h, 3, 3) sum w y y^T
-            sx = _skew(s1)
-            a[:, :3, :3] += np.einsum("hii->h", s2)[:, None, None] * np.eye(3) - s2
-            a[:, :3, 3:6] += sx
-            a[:, 3:6, :3] -= sx
-            a[:, 3:6, 3:6] += s0[:, None, None] * np.eye(3)
-            b[:, :3] -= (wp[:, None, :] @ _cross(y, e))[:, 0]
-            b[:, 3:6] -= (wp[:, None, :] @ e)[:, 0]
-            if fit_scale:
-                yc = y - c
-                col_r = (wp[:, None, :] @ _cross(y, np.broadcast_to(c, y.shape)))[:, 0]  # sum w y x c
-                col_t = -(wp[:, None, :] @ yc)[:, 0]
-                a[:, :3, 6] += col_r
-                a[:, 6, :3] += col_r
-                a[:, 3:6, 6] += col_t
-                a[:, 6, 3:6] += col_t
-                a[:, 6, 6] += np.einsum("hp,hpd,hpd->h", wp, yc, yc)
-                b[:, 6] += (wp[:, None, :] @ np.einsum("hpd,hpd->hp", yc, e)[..., None])[:, 0, 0]
+            wp = np.asarray(w * point_weight, dtype=np.float64)
+            ap, bp = point_to_point_normal_equations(y, y - m, wp, c, fit_scale=fit_scale)
+            a += ap
+            b += bp
         a += np.eye(dof)[None] * 1e-9
         if fit_scale:
             a[:, 6, 6] += prior
@@ -209,6 +191,42 @@ def icp(
             else:
                 break
     return poses, scales, frac
+
+
+def point_to_point_normal_equations(
+    y: FloatArray, e: FloatArray, w: FloatArray, c: FloatArray, *, fit_scale: bool
+) -> tuple[FloatArray, FloatArray]:
+    """Gauss-Newton terms of a weighted point-to-point residual, summed in closed form over the points.
+
+    y (H, P, 3) object-frame points, e (H, P, 3) residuals y - model point, w (H, P) weights, c (3,) scale
+    centre. Per point J = [-[y]x, I(, -(y - c))]; returns sum w J^T J (H, dof, dof) and -sum w J^T e (H, dof),
+    dof 6 (7 with the size factor).
+    """
+    h = y.shape[0]
+    dof = 7 if fit_scale else 6
+    a = np.zeros((h, dof, dof))
+    b = np.zeros((h, dof))
+    s0 = w.sum(1)
+    s1 = (w[:, None, :] @ y)[:, 0]  # (h, 3) sum w y
+    s2 = (y * w[..., None]).transpose(0, 2, 1) @ y  # (h, 3, 3) sum w y y^T
+    sx = _skew(s1)
+    a[:, :3, :3] = np.einsum("hii->h", s2)[:, None, None] * np.eye(3) - s2
+    a[:, :3, 3:6] = sx
+    a[:, 3:6, :3] = -sx
+    a[:, 3:6, 3:6] = s0[:, None, None] * np.eye(3)
+    b[:, :3] = -(w[:, None, :] @ _cross(y, e))[:, 0]
+    b[:, 3:6] = -(w[:, None, :] @ e)[:, 0]
+    if fit_scale:
+        yc = y - c
+        col_r = (w[:, None, :] @ _cross(y, np.broadcast_to(c, y.shape)))[:, 0]  # sum w y x c
+        col_t = -(w[:, None, :] @ yc)[:, 0]
+        a[:, :3, 6] = col_r
+        a[:, 6, :3] = col_r
+        a[:, 3:6, 6] = col_t
+        a[:, 6, 3:6] = col_t
+        a[:, 6, 6] = np.einsum("hp,hpd,hpd->h", w, yc, yc)
+        b[:, 6] = (w[:, None, :] @ np.einsum("hpd,hpd->hp", yc, e)[..., None])[:, 0, 0]
+    return a, b
 
 
 def _skew(v: FloatArray) -> FloatArray:
