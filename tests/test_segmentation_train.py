@@ -13,8 +13,15 @@ pytest.importorskip("onnx")
 
 from normpos_grasp.errors import InputError
 from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, OnnxSegmenter, OnnxSegmenterOptions
-from normpos_grasp.perception.train.data import CLASS_NAMES, pack_sample, read_shards, synth_samples
-from normpos_grasp.perception.train.trainer import TrainOptions, generate_shards, train
+from normpos_grasp.perception.train.data import (
+    CLASS_NAMES,
+    cell_samples,
+    frame_samples,
+    pack_sample,
+    read_shards,
+    synth_samples,
+)
+from normpos_grasp.perception.train.trainer import TrainOptions, generate_sample_shards, generate_shards, train
 
 
 def test_pack_sample_boxes_and_masks_agree() -> None:
@@ -30,6 +37,24 @@ def test_pack_sample_boxes_and_masks_agree() -> None:
         # mask pixels (stride 4) lie inside the box, up to one mask cell
         assert xs.min() * 4 >= b[0] - 4 and (xs.max() + 1) * 4 <= b[2] + 4
         assert ys.min() * 4 >= b[1] - 4 and (ys.max() + 1) * 4 <= b[3] + 4
+
+
+@pytest.mark.slow
+def test_cell_and_frame_shards(tmp_path: Path) -> None:
+    from normpos_grasp.demo import resolve_cell
+
+    cell = resolve_cell("ur5e_bin_parallel")
+    samples = cell_samples(cell, 5)
+    assert 1 <= len(samples) <= 2
+    # the demo's view: the cell's own camera; the second frame (after picks) has fewer parts
+    assert np.allclose(samples[0].frame.camera.world_from_camera, cell.world_from_camera)
+    if len(samples) == 2:
+        assert len(samples[1].instances) <= len(samples[0].instances)
+    assert all(i.label in CLASS_NAMES for s in samples for i in s.instances)
+    assert all(len(s.visib_fract) == len(s.instances) for s in samples)
+    generate_sample_shards(tmp_path, "frame", range(3, 4), (96, 128), frame_samples, shard_size=1)
+    xs, ms, _, cs = read_shards(tmp_path)
+    assert xs.shape == (1, 4, 96, 128) and len(ms[0]) == len(cs[0]) >= 1
 
 
 @pytest.mark.slow

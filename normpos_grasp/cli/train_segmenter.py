@@ -35,6 +35,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--data", type=Path, default=None, help="folder of shard_*.npz (default: OUT/data)")
     p.add_argument("--scenes", type=int, default=500, help="scenes to render if data is missing (2 views each)")
     p.add_argument("--first-scene-seed", type=int, default=100000, help="seed of the first training scene")
+    p.add_argument("--cell", default=None, help="also render bins of this cell (packaged name or YAML), its camera")
+    p.add_argument("--cell-scenes", type=int, default=0, help="cell bins to render (2 frames each: full, picked)")
+    p.add_argument("--cell-first-seed", type=int, default=300000, help="seed of the first cell bin")
+    p.add_argument("--frame-scenes", type=int, default=0, help="extra generate_frame scenes (1 frame each)")
+    p.add_argument("--frame-first-seed", type=int, default=310000, help="seed of the first generate_frame scene")
     p.add_argument("--steps", type=int, default=3000, help="optimiser steps")
     p.add_argument("--batch", type=int, default=16, help="images per step")
     p.add_argument("--lr", type=float, default=4e-3, help="peak learning rate")
@@ -46,7 +51,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from normpos_grasp.perception.train.trainer import TrainOptions, generate_shards, train
+    from functools import partial
+
+    from normpos_grasp.perception.train.data import cell_samples, frame_samples
+    from normpos_grasp.perception.train.trainer import TrainOptions, generate_sample_shards, generate_shards, train
 
     h, w = args.input_size
     if h % 32 or w % 32:
@@ -56,6 +64,19 @@ def run(args: argparse.Namespace) -> int:
         seeds = range(args.first_scene_seed, args.first_scene_seed + args.scenes)
         with tqdm(total=len(seeds), desc="rendering scenes", unit="scene") as bar:
             generate_shards(Path(data), seeds, (h, w), progress=bar.update)
+    if args.cell_scenes > 0:
+        if args.cell is None:
+            raise InputError("--cell-scenes needs --cell (a packaged cell name or a cell YAML)")
+        from normpos_grasp.demo import resolve_cell
+
+        cell = resolve_cell(args.cell)
+        seeds = range(args.cell_first_seed, args.cell_first_seed + args.cell_scenes)
+        with tqdm(total=len(seeds), desc="rendering cell bins", unit="scene") as bar:
+            generate_sample_shards(Path(data), "cell", seeds, (h, w), partial(cell_samples, cell), progress=bar.update)
+    if args.frame_scenes > 0:
+        seeds = range(args.frame_first_seed, args.frame_first_seed + args.frame_scenes)
+        with tqdm(total=len(seeds), desc="rendering frames", unit="scene") as bar:
+            generate_sample_shards(Path(data), "frame", seeds, (h, w), frame_samples, progress=bar.update)
     options = TrainOptions(
         input_hw=(h, w),
         steps=args.steps,

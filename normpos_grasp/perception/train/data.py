@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from normpos_grasp.camera.model import RGBDFrame
+from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import DatasetError
 from normpos_grasp.perception.base import Instance
 from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, preprocess
@@ -82,6 +83,56 @@ def synth_samples(
     finally:
         renderer.close()
     return out
+
+
+def cell_samples(cell: CellConfig, seed: int, sensor: str = "d435") -> list[Sample]:
+    """Two views of a bin of a cell (`normpos_grasp.sim.cell_scene`), seen by the cell's own camera as in the demo:
+    2-14 parts (drawn from `seed`) dropped into the cell's bin, then the same bin with some parts taken out (as
+    after picks)."""
+    from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene, remove_parts
+    from normpos_grasp.sim.dataset import render_frame
+    from normpos_grasp.sim.render import make_renderer
+    from normpos_grasp.sim.sensor import sensor_preset
+
+    rng = np.random.default_rng(seed)
+    layout = compose_cell_scene(cell, int(rng.integers(2, 15)), seed)
+    camera = cell_camera(cell, sensor)
+    noise = sensor_preset(sensor)
+    out: list[Sample] = []
+    for view in range(2):
+        if view == 1:
+            if layout.n_parts <= 1:
+                break
+            take = int(rng.integers(1, layout.n_parts))
+            layout = remove_parts(layout, rng.choice(layout.n_parts, size=take, replace=False).tolist())
+        renderer = make_renderer(layout, camera.width, camera.height)
+        try:
+            sf = render_frame(layout, renderer, camera, noise, rng, scene_id=seed, im_id=view)
+        finally:
+            renderer.close()
+        vis = np.array([sf.visib_fractions[i.source_id] for i in sf.instances], dtype=np.float64)
+        out.append(Sample(sf.frame, sf.instances, vis))
+    return out
+
+
+def frame_samples(seed: int, sensor: str = "d435", resolution: tuple[int, int] = (640, 480)) -> list[Sample]:
+    """One view of a random scene from `normpos_grasp.sim.dataset.generate_frame` (bin, table or conveyor, 3-14
+    parts, clutter and stacking drawn from `seed`)."""
+    from normpos_grasp.sim.cameras import CameraOptions
+    from normpos_grasp.sim.dataset import generate_frame
+    from normpos_grasp.sim.scene import SceneOptions
+
+    rng = np.random.default_rng(seed)
+    opts = SceneOptions(
+        count=int(rng.integers(3, 15)),
+        container=str(rng.choice(["bin", "table", "conveyor"])),
+        clutter=float(rng.uniform(0.0, 1.0)),
+        stack_layers=int(rng.integers(1, 4)),
+        seed=seed,
+    )
+    sf = generate_frame(opts, sensor, CameraOptions(resolution=resolution, sensor=sensor), seed)
+    vis = np.array([sf.visib_fractions[i.source_id] for i in sf.instances], dtype=np.float64)
+    return [Sample(sf.frame, sf.instances, vis)]
 
 
 def pack_sample(

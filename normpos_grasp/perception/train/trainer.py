@@ -22,7 +22,14 @@ import numpy as np
 
 from normpos_grasp.errors import DatasetError, MissingDependency
 from normpos_grasp.perception.onnx_segmenter import CONF_METADATA_KEY, DEPTH_METADATA_KEY, DepthChannelSpec
-from normpos_grasp.perception.train.data import CLASS_NAMES, pack_sample, read_shards, synth_samples, write_shard
+from normpos_grasp.perception.train.data import (
+    CLASS_NAMES,
+    Sample,
+    pack_sample,
+    read_shards,
+    synth_samples,
+    write_shard,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -81,6 +88,29 @@ def generate_shards(
         if not path.exists():
             packed = [pack_sample(s, input_hw, spec) for seed in range(start, stop) for s in synth_samples(seed, views)]
             write_shard(path, packed)
+        if progress is not None:
+            progress(stop - start)
+
+
+def generate_sample_shards(
+    folder: Path,
+    prefix: str,
+    seeds: range,
+    input_hw: tuple[int, int],
+    make: Callable[[int], list[Sample]],
+    shard_size: int = 25,
+    progress: Callable[[int], None] | None = None,
+) -> None:
+    """Like `generate_shards` for any sample source: `make(seed)` gives the samples of one seed (for example
+    `data.cell_samples` or `data.frame_samples`); files are named shard_<prefix>_<first seed>.npz and kept if
+    present."""
+    folder.mkdir(parents=True, exist_ok=True)
+    spec = DepthChannelSpec()
+    for start in range(seeds.start, seeds.stop, shard_size):
+        path = folder / f"shard_{prefix}_{start:07d}.npz"
+        stop = min(start + shard_size, seeds.stop)
+        if not path.exists():
+            write_shard(path, [pack_sample(s, input_hw, spec) for seed in range(start, stop) for s in make(seed)])
         if progress is not None:
             progress(stop - start)
 
