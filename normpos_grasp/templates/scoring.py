@@ -178,7 +178,8 @@ def evaluate(
         # (a real part reflects; dropouts are thin), counted at half weight
         missing = inside & ~np.isfinite(nearest) & ~grazing
         # support: some depth within the window agrees (silhouettes of real depth shift by a pixel or two)
-        supported = inside & (closest <= tol_z)
+        # (occluded points are out of the denominator, so they must be out of the numerator too: coverage <= 1)
+        supported = inside & ~occluded & (closest <= tol_z)
         # pixels without a depth reading are not evidence for the template: they count as unsupported
         denom = max(int((inside & ~occluded).sum()), 1)
         coverage = float(supported.sum()) / denom
