@@ -45,7 +45,7 @@ class DemoOptions:
 
     cell: str = "ur5e_bin_parallel"
     seed: int = 0
-    parts: int = 5
+    parts: int = 4
     max_picks: int = 8
     sensor: str = "d435"
     segmenter: str = "model"

@@ -19,7 +19,7 @@ def register(sub: Any) -> None:
     parser.add_argument("--out", default="demo_out", help="report folder (default: demo_out)")
     parser.add_argument("--cell", default="ur5e_bin_parallel", help=f"cell YAML or one of: {', '.join(BUILTIN_CELLS)}")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
-    parser.add_argument("--parts", type=int, default=5, help="parts dropped into the bin")
+    parser.add_argument("--parts", type=int, default=4, help="parts dropped into the bin")
     parser.add_argument("--part-names", default="", help="comma-separated part names to drop (default: all)")
     parser.add_argument("--max-picks", type=int, default=8, help="most picks to attempt")
     parser.add_argument(
