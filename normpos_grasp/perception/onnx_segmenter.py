@@ -226,7 +226,7 @@ def decode(
     coeffs = pred[4 + nc :, sel[keep]].T.astype(np.float32)  # (k, nm)
     # einsum, not BLAS: a (k, 32) x (32, n) product is too small for BLAS threads, which stall on a loaded CPU
     logits = np.einsum("kc,cn->kn", coeffs, protos[0].reshape(nm, -1).astype(np.float32))
-    prob = (1.0 / (1.0 + np.exp(-logits))).reshape(-1, mh, mw)
+    prob = (1.0 / (1.0 + np.exp(-np.clip(logits, -60.0, 60.0)))).reshape(-1, mh, mw)
     # remove the letterbox padding at prototype resolution, then resize to the frame
     ih, iw = input_hw
     sy, sx = mh / ih, mw / iw
