@@ -140,7 +140,7 @@ class SyntheticBinSource:
             return "missed"
         outcome = "not_checked"
         if self.validate_physics:
-            from normpos_grasp.sim.physics import validate_grasp
+            from normpos_grasp.sim.physics import PhysicsOptions, validate_grasp
 
             neighbours = [
                 (t, self.layout.world_from_object[i]) for i, t in enumerate(self.layout.templates) if i != part
@@ -153,6 +153,8 @@ class SyntheticBinSource:
                 _physics_gripper(self.cell),
                 plan.chosen.candidate.world_from_tcp,
                 max(plan.chosen.candidate.opening_m, 1e-3),
+                # lift out of the bin (as the plan does) before the sideways shake, so the hand clears the rim
+                PhysicsOptions(lift_to_z_m=float(self.cell.entry_z) + PhysicsOptions().approach_m),
             )
             outcome = result.outcome
             if outcome != "held":
