@@ -353,3 +353,63 @@ def test_minimal_dict_cell_plans() -> None:
     part = _box("box", (0.06, 0.04, 0.03))
     plan = plan_pick([_fit(part, make_pose(None, [0.45, 0.1, 0.015]), 1)], [], cell)
     assert plan.status == "ok"
+
+
+def _leaning_bar(rolled: bool = False) -> tuple[Template, np.ndarray, Template, np.ndarray]:
+    """A 100 x 25 x 25 mm bar, nothing above it. Pitched (default): 22 degrees about y, its low end on the floor,
+    its underside 1 mm above the edge of a 40 x 40 x 30 mm block. Rolled: lying along x, rolled 22 degrees about
+    its long axis, one edge on the floor, its underside 1 mm above the edge of an 8 mm plate-like block."""
+    tilt = np.deg2rad(22.0)
+    if rolled:
+        bar, block = _box("bar", (0.1, 0.025, 0.025)), _box("block", (0.12, 0.04, 0.008))
+        c, s = np.cos(tilt), np.sin(tilt)
+        bar_pose = make_pose(rotation_from_rotvec([tilt, 0.0, 0.0]), [0.5, -0.02, FLOOR_Z + 0.0125 * (c + s)])
+        edge = 0.009 / np.tan(tilt) - 0.0125 * (c - s)  # where the rising underside is 9 mm above the floor
+        return bar, bar_pose, block, make_pose(None, [0.5, -0.02 + edge + 0.02, FLOOR_Z + 0.004])
+    bar, block = _box("bar", (0.1, 0.025, 0.025)), _box("block", (0.04, 0.04, 0.03))
+    cz = FLOOR_Z + 0.05 * np.sin(tilt) + 0.0125 * np.cos(tilt)
+    bar_pose = make_pose(rotation_from_rotvec([0.0, -tilt, 0.0]), [0.48, 0.0, cz])
+    s_edge = (FLOOR_Z + 0.031 - cz + 0.0125 * np.cos(tilt)) / np.sin(tilt)  # along the bar, where it meets z = 41 mm
+    block_pose = make_pose(None, [0.48 + s_edge * np.cos(tilt) + 0.02, 0.0, FLOOR_Z + 0.015])
+    return bar, bar_pose, block, block_pose
+
+
+def test_vertical_prism_grasps_only_for_tilted_prisms() -> None:
+    from normpos_grasp.grasp.candidates import vertical_prism_grasps
+    from normpos_grasp.grasp.synthesis import SynthesisOptions
+
+    bar, bar_pose, _, _ = _leaning_bar()
+    opts = SynthesisOptions(finger_tip_m=0.02)
+    grasps = vertical_prism_grasps(bar, bar_pose, opts)
+    assert grasps
+    long_axis = bar_pose[:3, 0]
+    for _, pose, opening, _ in grasps:
+        np.testing.assert_allclose(pose[:3, 2], [0.0, 0.0, -1.0], atol=1e-9)  # straight down
+        assert abs(pose[:3, 0] @ long_axis) < 1e-9 and abs(pose[2, 0]) < 1e-9  # closes horizontally, across
+        # the bar is 25 mm wide across; pitched about y, its cut stays 25 mm wide
+        assert opening == pytest.approx(0.025 + 2 * opts.clearance_m, abs=1e-6)
+        top = (pose[:3, 3] - bar_pose[:3, 3]) @ long_axis  # along the bar, within its length
+        assert abs(top) <= 0.05
+    # lying flat, standing up, or a cube: no such grasps (the face grasps already come from above, or none apply)
+    assert vertical_prism_grasps(bar, _on_floor(bar, 0.5, 0.0, 0.7), opts) == []
+    standing = make_pose(rotation_from_rotvec([0.0, np.pi / 2, 0.0]), [0.5, 0.0, 0.07])
+    assert vertical_prism_grasps(bar, standing, opts) == []
+    cube = _box("cube", (0.04, 0.04, 0.04))
+    assert vertical_prism_grasps(cube, bar_pose, opts) == []
+
+
+@pytest.mark.parametrize("rolled", [False, True])
+def test_leaning_bar_gets_a_vertical_grasp(bin_cell: CellConfig, rolled: bool) -> None:
+    bar, bar_pose, block, block_pose = _leaning_bar(rolled)
+    fits = [_fit(bar, bar_pose, 1), _fit(block, block_pose, 2)]
+    plan = plan_pick(fits, [], bin_cell, _all_options())
+    vertical = [
+        e
+        for e in plan.evaluations
+        if e.feasible and e.candidate.target == 0 and e.candidate.world_from_tcp[2, 2] < -0.99999
+    ]
+    assert vertical, f"no feasible straight-down grasp of the bar: {plan.counts}"
+    plan = plan_pick(fits, [], bin_cell)
+    assert plan.status == "ok" and plan.chosen is not None
+    gt = [(bar.mesh, bar_pose), (block.mesh, block_pose)]
+    assert _independent_collisions(plan, bin_cell, gt, plan.chosen.candidate.target) == []

@@ -6,6 +6,7 @@ from normpos_grasp.grasp.candidates import (
     candidates_for_object,
     expand_annotation,
     primitive_template,
+    vertical_prism_grasps,
 )
 from normpos_grasp.grasp.synthesis import SynthesisOptions, synthesize, tcp_frame
 
@@ -18,4 +19,5 @@ __all__ = [
     "primitive_template",
     "synthesize",
     "tcp_frame",
+    "vertical_prism_grasps",
 ]

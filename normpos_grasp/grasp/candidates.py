@@ -8,9 +8,10 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
-from normpos_grasp.geometry.transforms import rotation_from_rotvec
-from normpos_grasp.grasp.synthesis import SynthesisOptions, _cylinder_axis, synthesize
+from normpos_grasp.geometry.transforms import rotation_from_rotvec, transform_points
+from normpos_grasp.grasp.synthesis import SynthesisOptions, _cylinder_axis, _obb, synthesize, tcp_frame
 from normpos_grasp.measure.normpos import NormPosition
 from normpos_grasp.templates.model import GraspAnnotation, Template
 from normpos_grasp.typing import FloatArray
@@ -45,13 +46,16 @@ class CandidateOptions:
     tilt cone's rim (0: nominal only). synthesize: 'missing' (only when a template has no annotations), 'always'
     or 'never'. synthesis: settings of automatic synthesis. snap_to_vertical: for parts with a continuous symmetry
     (cylinders, spheres, annotated free axes) also offer each grasp rotated about the symmetry axis so that it
-    approaches as close to straight down as the symmetry allows (an equivalent grasp, usually the reachable one)."""
+    approaches as close to straight down as the symmetry allows (an equivalent grasp, usually the reachable one).
+    vertical_prism: for prism-like parts (bars, boxes, cylinders) lying tilted (leaning on a neighbour), also offer
+    straight-down pinches closing horizontally across the part's long axis (`vertical_prism_grasps`)."""
 
     free_axis_steps: int = 8
     tilt_steps: int = 4
     synthesize: str = "missing"
     synthesis: SynthesisOptions = SynthesisOptions()
     snap_to_vertical: bool = True
+    vertical_prism: bool = True
 
 
 def expand_annotation(g: GraspAnnotation, options: CandidateOptions) -> list[tuple[str, FloatArray]]:
@@ -242,6 +246,121 @@ def _align_closing(
     return out, valid
 
 
+def _long_axis(template: Template) -> tuple[FloatArray, FloatArray, float] | None:
+    """(unit long axis (3,), centre (3,), length m) of a prism-like template in its object frame, or None when the
+    part has no clear long axis (a cube, a disc, a sphere, an irregular part)."""
+    if template.shape == "cylinder":
+        axis, centre, r, length = _cylinder_axis(template)
+        return (axis, centre, length) if length >= 1.2 * 2 * r else None
+    if template.shape not in ("box", "bar"):
+        return None
+    frame, ext = _obb(template)
+    order = np.argsort(ext)[::-1]
+    if ext[order[0]] < 1.3 * ext[order[1]]:
+        return None
+    return frame[:3, order[0]], frame[:3, 3], float(ext[order[0]])
+
+
+def vertical_prism_grasps(
+    template: Template, world_from_object: FloatArray, options: SynthesisOptions, min_tilt_rad: float = np.deg2rad(5)
+) -> list[tuple[str, FloatArray, float, float]]:
+    """Straight-down parallel pinches for a prism-like part lying tilted: (id, world_from_tcp (4, 4), opening m,
+    quality) each.
+
+    The jaws close horizontally, perpendicular to the long axis projected on the horizontal plane; at the centre
+    and a quarter of the length off centre on both sides, the part is cut by the vertical plane across that
+    projection: the opening is the cut's width along the closing direction plus `clearance_m` on each side, the
+    TCP sits mid-width, `options.depth` below the cut's top (never below its mid-height) and, for jaw tips that
+    would reach a neighbour or the floor, also 30 % and 20 % of the cut's height below its top. Both jaw orientations
+    (half a turn about the approach) are offered. Empty when the part has no clear long axis, the axis is within
+    30 degrees of vertical, a box face axis is within `min_tilt_rad` of vertical or a cylinder lies within it of
+    flat (the synthesized face grasps then approach straight down already)."""
+    found = _long_axis(template)
+    if found is None:
+        return []
+    axis_o, centre_o, length = found
+    rot = np.asarray(world_from_object, dtype=np.float64)[:3, :3]
+    axis = rot @ axis_o
+    centre = rot @ centre_o + world_from_object[:3, 3]
+    up = np.array([0.0, 0.0, 1.0])
+    horiz = axis - up * axis[2]
+    if np.linalg.norm(horiz) < 0.5:  # within 30 degrees of vertical: standing, no horizontal projection
+        return []
+    if template.shape == "cylinder":
+        aligned = abs(axis[2]) < np.sin(min_tilt_rad)  # lying flat: side grasps already come from above
+    else:
+        frame_rot = rot @ _obb(template)[0][:3, :3]
+        aligned = bool(np.any(np.abs(frame_rot[2]) > np.cos(min_tilt_rad)))
+    if aligned:
+        return []
+    horiz /= np.linalg.norm(horiz)
+    closing = np.cross(up, horiz)
+    verts = transform_points(world_from_object, np.asarray(template.mesh.vertices, dtype=np.float64))
+    faces = np.asarray(template.mesh.faces)
+    out: list[tuple[str, FloatArray, float, float]] = []
+    for k, frac in enumerate((0.0, -0.25, 0.25)):
+        origin = centre + axis * frac * length
+        pts = _plane_cut(verts, faces, origin, horiz)
+        if len(pts) < 3:
+            continue
+        cut = np.column_stack([(pts - origin) @ closing, pts[:, 2]])
+        top, bottom = float(pts[:, 2].max()), float(pts[:, 2].min())
+        height = top - bottom
+        if height < 1e-3:
+            continue
+        depths = {round(min(options.depth(height), height / 2.0), 6), round(0.3 * height, 6), round(0.2 * height, 6)}
+        for d_idx, depth in enumerate(sorted(depths, reverse=True)):
+            z_tcp = top - depth
+            # everything of the cut above the jaw tips must fit between the open jaws
+            lo, hi = _extent_above(cut, z_tcp - options.finger_tip_m)
+            width = hi - lo
+            if width < 1e-3:
+                continue
+            pos = origin + closing * (hi + lo) / 2.0
+            pos[2] = z_tcp
+            opening = width + 2 * options.clearance_m
+            quality = 0.95 - 0.1 * abs(frac) - 0.05 * d_idx
+            for sign in (1.0, -1.0):
+                pose = tcp_frame(-up, sign * closing, pos)
+                out.append((f"vert_prism_{k}_d{d_idx}{'+' if sign > 0 else '-'}", pose, opening, quality))
+    return out
+
+
+def _extent_above(cut: FloatArray, z_min: float) -> tuple[float, float]:
+    """(low, high) along the first column of the convex hull of 2D points `cut` (M, 2) (across, height), keeping
+    only the part of the hull at height >= `z_min` (its edges cut at that height); the whole hull when none is."""
+    pts = np.unique(np.round(cut, 9), axis=0)
+    keep = [pts[pts[:, 1] >= z_min, 0]]
+    if len(pts) >= 3:
+        try:
+            hull = ConvexHull(pts)
+            ring = pts[hull.vertices]
+        except QhullError:  # collinear cut: its points are its own outline
+            ring = pts
+        a, b = ring, np.roll(ring, -1, axis=0)
+        crosses = (a[:, 1] - z_min) * (b[:, 1] - z_min) < 0
+        t = (z_min - a[crosses, 1]) / (b[crosses, 1] - a[crosses, 1])
+        keep.append(a[crosses, 0] + t * (b[crosses, 0] - a[crosses, 0]))
+    xs = np.concatenate(keep)
+    if len(xs) == 0:
+        xs = pts[:, 0]
+    return float(xs.min()), float(xs.max())
+
+
+def _plane_cut(verts: FloatArray, faces: np.ndarray, origin: FloatArray, normal: FloatArray) -> FloatArray:
+    """(M, 3) points where the mesh's edges (vertices (V, 3), faces (F, 3)) cross the plane through `origin` with
+    unit `normal`, plus the vertices lying on it (within 1e-9 m)."""
+    d = (verts - origin) @ normal
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    da, db = d[edges[:, 0]], d[edges[:, 1]]
+    cross = (da * db) < 0
+    t = da[cross] / (da[cross] - db[cross])
+    a, b = verts[edges[cross, 0]], verts[edges[cross, 1]]
+    pts = a + t[:, None] * (b - a)
+    on = verts[np.abs(d) < 1e-9]
+    return np.concatenate([pts, on]) if len(on) else pts
+
+
 def candidates_for_object(
     target: int,
     template: Template,
@@ -297,6 +416,14 @@ def candidates_for_object(
                 out.append(
                     GraspCandidate(target, name, f"{gid}@align{m}", source, g.scheme, aligned[0][k, m], *fields[6:])
                 )
+    if opts.vertical_prism and tool_kind == "parallel" and opts.synthesize != "never":
+        syn = opts.synthesis
+        for gid, pose, opening, quality in vertical_prism_grasps(template, world_from_object, syn):
+            out.append(
+                GraspCandidate(
+                    target, name, gid, "synthesized", "parallel", pose, opening, syn.approach_m, syn.retreat_m, quality
+                )
+            )
     return out
 
 
