@@ -63,8 +63,9 @@ class FitOptions:
             template leaves coherent residuals).
         min_inlier_ratio, max_rmse_m (added to the median inlier distance), min_coverage (with depth image),
         min_coverage_no_depth (without), max_free_space_violation: acceptance thresholds.
-        ambiguity_ratio: a distinct pose (ADD-S > ambiguity_add_s * diameter) scoring at least this share of
-            the best makes the fit ambiguous (rejected).
+        ambiguity_ratio: a distinct pose (ADD-S > ambiguity_add_s * diameter or, for templates without a
+            continuous symmetry, symmetry-aware ADD > ambiguity_add * diameter: a turned copy whose faces overlap
+            the best pose's) scoring at least this share of the best makes the fit ambiguous (rejected).
         depth_bias_m: a calibrated systematic depth offset of the sensor, metres (positive: the sensor reads
             too far); measured points are moved towards the camera by it along their rays. 0 by default.
         class_ambiguity_ratio: with label '', a second template accepted with at least this share of the best
@@ -103,6 +104,7 @@ class FitOptions:
     ambiguity_ratio: float = 0.95
     class_ambiguity_ratio: float = 0.85
     ambiguity_add_s: float = 0.1
+    ambiguity_add: float = 0.2
     depth_bias_m: float = 0.0
     seed: int = 0
 
@@ -625,6 +627,22 @@ def _add_s(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:
     return float(np.mean(d))
 
 
+def _add_sym(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:
+    """Smallest ADD (mean distance of corresponding posed samples, metres) over the discrete symmetries.
+
+    ADD-S calls a box turned 90 degrees "near" the right pose (its faces overlap the right pose's faces), so
+    for templates without a continuous symmetry the rival test also uses this distance.
+    """
+    sub = prep.samples[:: max(1, len(prep.samples) // 300)]
+    pa = (sub * a.scale - a.object_from_frame[:3, 3]) @ a.object_from_frame[:3, :3]
+    best = np.inf
+    for sym in prep.sym:
+        ps = (sub @ sym[:3, :3].T + sym[:3, 3]) * b.scale
+        ps = (ps - b.object_from_frame[:3, 3]) @ b.object_from_frame[:3, :3]
+        best = min(best, float(np.mean(np.linalg.norm(pa - ps, axis=1))))
+    return best
+
+
 def _decide(
     prep: PreparedTemplate,
     template: Template,
@@ -670,11 +688,16 @@ def _decide(
         if other.score.score >= opts.ambiguity_ratio * s.score and s.score > 0:
             dist = _add_s(prep, best, other)
             if dist > opts.ambiguity_add_s * prep.diameter:
-                rival = (other, dist)
+                rival = (other, dist, "ADD-S")
                 break
+            if not template.symmetry.continuous:
+                dist = _add_sym(prep, best, other)
+                if dist > opts.ambiguity_add * prep.diameter:
+                    rival = (other, dist, "ADD")
+                    break
     if rival is not None:
         reasons.append(
-            f"ambiguous: a pose {rival[1] * 1000:.1f} mm (ADD-S) away scores {rival[0].score.score:.3f} "
+            f"ambiguous: a pose {rival[1] * 1000:.1f} mm ({rival[2]}) away scores {rival[0].score.score:.3f} "
             f"vs {s.score:.3f}"
         )
     world_from_object = invert_pose(best.object_from_frame)

@@ -19,6 +19,10 @@ from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
 FREE_SPACE_WINDOW_PX = 2
+#: an inlier's offset along the template surface (beside it, past an edge) is at most this many sample spacings
+#: or this share of its inlier distance
+BESIDE_SPACINGS = 1.5
+BESIDE_THR = 0.35
 
 
 @dataclass(frozen=True)
@@ -107,7 +111,11 @@ def _fit_stats(
 ) -> tuple[float, float, float, BoolArray]:
     """Inlier ratio, inlier RMSE (metres), consistency and the inlier mask from (P,) residuals / distances."""
     near = d < np.maximum(3.0 * thr / scale, 2.0 * prep.spacing)
-    inl = near & (np.abs(r) * scale < thr)
+    # a point beside the template's surface (past an edge, yet in the plane of a face) is not explained by it:
+    # its offset along the surface must stay within the sampling spacing (depth noise is mostly along the normal)
+    beside = np.sqrt(np.maximum(np.where(near, d, 0.0) ** 2 - np.where(near, r, 0.0) ** 2, 0.0)) * scale
+    beside_tol = np.maximum(BESIDE_SPACINGS * prep.spacing * scale, BESIDE_THR * thr)
+    inl = near & (np.abs(r) * scale < thr) & (beside <= beside_tol)
     inlier_ratio = float(inl.mean()) if len(inl) else 0.0
     consistency = _consistency(pts, r * scale, near, thr, neighbours)
     rmse = float(np.sqrt(np.mean((r[inl] * scale) ** 2))) if np.any(inl) else float("inf")
