@@ -10,6 +10,7 @@ re-reads the state.
 
 from __future__ import annotations
 
+import abc
 import logging
 import time
 from dataclasses import dataclass
@@ -152,7 +153,7 @@ def movej_duration(q_from: FloatArray, q_to: FloatArray, speed: float, accel: fl
     return d / speed + speed / accel
 
 
-class GuardedDriver:
+class GuardedDriver(abc.ABC):
     """Safety checks, fault latch and move monitoring on top of backend primitives (`_backend_*`)."""
 
     def __init__(self, limits: SafetyLimits, gripper: GripperIO | None = None, options: DriverOptions | None = None):
@@ -163,51 +164,55 @@ class GuardedDriver:
         self.commands_sent = 0
 
     # ------------------------------------------------------------------ backend primitives (override)
-    def _backend_connect(self) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_connect(self) -> None: ...
 
-    def _backend_disconnect(self) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_disconnect(self) -> None: ...
 
-    def _backend_state(self) -> ArmState:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_state(self) -> ArmState: ...
 
-    def _backend_connected(self) -> bool:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_connected(self) -> bool: ...
 
+    @abc.abstractmethod
     def _backend_move_path(self, waypoints: FloatArray, speed: float, accel: float) -> None:
         """Start (asynchronously) a movej path through `waypoints` (N, 6)."""
-        raise NotImplementedError
+        ...
 
-    def _backend_move_linear(self, poses: FloatArray, speed: float, accel: float) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_move_linear(self, poses: FloatArray, speed: float, accel: float) -> None: ...
 
-    def _backend_servo(self, q: FloatArray, period_s: float) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_servo(self, q: FloatArray, period_s: float) -> None: ...
 
-    def _backend_servo_begin(self) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_servo_begin(self) -> None: ...
 
-    def _backend_servo_end(self) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_servo_end(self) -> None: ...
 
-    def _backend_stop(self, decel: float) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_stop(self, decel: float) -> None: ...
 
+    @abc.abstractmethod
     def _backend_link_lost(self) -> None:
         """The state stream is gone: halt the arm by a path that does not need it (no motion is re-sent)."""
-        raise NotImplementedError
+        ...
 
+    @abc.abstractmethod
     def _backend_busy(self) -> bool:
         """True while the controller still executes the last motion."""
-        raise NotImplementedError
+        ...
 
-    def _backend_set_output(self, index: int, level: bool, tool: bool) -> None:
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _backend_set_output(self, index: int, level: bool, tool: bool) -> None: ...
 
+    @abc.abstractmethod
     def _backend_reset_faults(self) -> None:
         """Make the backend ready for motion again after an unlocked stop (e.g. re-upload the control script)."""
-        raise NotImplementedError
+        ...
 
     # ------------------------------------------------------------------ public API
     @property
