@@ -370,21 +370,26 @@ def _fit_candidates(
     if len(poses) == 0:
         return []
     ci = _subsample(len(meas.pts_fit), opts.n_coarse_points, rng)
-    poses, scales, frac = icp(
-        prep,
-        poses,
-        np.ones(len(poses)),
-        meas.pts_fit[ci],
-        meas.nrm_fit[ci],
-        meas.thr_fit[ci],
-        iterations=opts.coarse_iterations,
-        exact=False,
-        fit_scale=False,
-        scale_tolerance=opts.scale_tolerance,
-        max_corr_start=0.25 * prep.diameter,
-        prune_after=opts.coarse_prune_after,
-        prune_keep=opts.coarse_keep,
-    )
+
+    def coarse(start: FloatArray, start_scales: FloatArray, keep_n: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Coarse ICP (grid correspondences, fixed scale) of poses on the coarse subsample, pruned to `keep_n`."""
+        return icp(
+            prep,
+            start,
+            start_scales,
+            meas.pts_fit[ci],
+            meas.nrm_fit[ci],
+            meas.thr_fit[ci],
+            iterations=opts.coarse_iterations,
+            exact=False,
+            fit_scale=False,
+            scale_tolerance=opts.scale_tolerance,
+            max_corr_start=0.25 * prep.diameter,
+            prune_after=opts.coarse_prune_after,
+            prune_keep=keep_n,
+        )
+
+    poses, scales, frac = coarse(poses, np.ones(len(poses)), opts.coarse_keep)
     keep = _distinct(poses, frac, prep, opts.n_refine)
     cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
     out, ref_poses, ref_scales = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff, [], floor)
@@ -403,21 +408,7 @@ def _fit_candidates(
             turn[:3, :3] = rv
             turn[:3, 3] = centre - rv @ centre
             variants.append(turn @ best)
-        vp, vs, vf = icp(
-            prep,
-            np.array(variants),
-            np.full(len(variants), ref_scales[0]),
-            meas.pts_fit[ci],
-            meas.nrm_fit[ci],
-            meas.thr_fit[ci],
-            iterations=opts.coarse_iterations,
-            exact=False,
-            fit_scale=False,
-            scale_tolerance=opts.scale_tolerance,
-            max_corr_start=0.25 * prep.diameter,
-            prune_after=opts.coarse_prune_after,
-            prune_keep=opts.flip_keep,
-        )
+        vp, vs, vf = coarse(np.array(variants), np.full(len(variants), ref_scales[0]), opts.flip_keep)
         pick = [i for i in _distinct(vp, vf, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
         pick = pick[: opts.n_flip_variants]
         if pick:
