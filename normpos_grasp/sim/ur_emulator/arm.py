@@ -8,6 +8,7 @@ trapezoidal profile limited by the leading joint's speed and acceleration; `move
 
 from __future__ import annotations
 
+import abc
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -55,13 +56,14 @@ def trapezoid_s(t: float, distance: float, v_cruise: float, a: float, total: flo
     return 0.5 * a * t_acc * t_acc + v_cruise * (t - t_acc)
 
 
-class Motion:
+class Motion(abc.ABC):
     """One motion primitive; `advance(arm, dt)` sets the arm's next joint target, returns True when finished."""
 
     progress: int = 0
 
-    def advance(self, arm: SimulatedArm, dt: float) -> bool:  # pragma: no cover - interface
-        raise NotImplementedError
+    @abc.abstractmethod
+    def advance(self, arm: SimulatedArm, dt: float) -> bool:
+        """Advance by `dt` seconds."""
 
 
 class JointMove(Motion):
