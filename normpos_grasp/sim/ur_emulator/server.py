@@ -509,8 +509,9 @@ class UREmulator:
             try:
                 self.controller.tick()
                 self._publish(tick)
-            except Exception:
-                log.exception("emulator control cycle failed")
+            except Exception as exc:  # a failed cycle must not leave the arm moving: stop it, as a controller would
+                log.exception("emulator control cycle failed; protective stop")
+                self.controller.protective_stop(f"internal error: {exc}")
             tick += 1
 
     def _publish(self, tick: int) -> None:
