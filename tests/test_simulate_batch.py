@@ -117,8 +117,6 @@ def test_cli_registers_simulate() -> None:
 @pytest.mark.slow
 def test_episode_is_deterministic_for_a_seed(tmp_path: Path) -> None:
     pytest.importorskip("mujoco")
-    if not CELL.exists():
-        pytest.skip("example cell not in this checkout")
     config = SimulationConfig(cell_path=str(CELL), parts_per_scene=3, seed=5, max_consecutive_failures=1)
     first = run_batch(config, 1)
     second = run_batch(config, 1)
