@@ -243,6 +243,29 @@ def merge_continuous(
     return new.astype(np.int32)[lab]
 
 
+def fill_enclosed_holes(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`lab` (h, w) int32 labels with the invalid-depth regions (`valid` False) that are enclosed by one label only
+    (dropouts on a part's surface, not shadows beside it) given that label; other invalid pixels become 0."""
+    holes = (~valid).astype(np.uint8)
+    n, cc = cv2.connectedComponents(holes, connectivity=4)
+    lab = np.where(valid, lab, 0).astype(np.int32)
+    if n <= 1:
+        return lab
+    # every valid pixel next to a hole carries that hole's id; enclosed: the labels around it are all one label > 0
+    ring_id = cv2.dilate(cc.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int32)
+    ring = valid & (ring_id > 0)
+    ids = ring_id[ring]
+    lo = np.full(n, np.iinfo(np.int32).max, np.int64)
+    hi = np.full(n, -1, np.int64)
+    np.minimum.at(lo, ids, lab[ring])
+    np.maximum.at(hi, ids, lab[ring])
+    border = np.unique(np.concatenate([cc[0], cc[-1], cc[:, 0], cc[:, -1]]))
+    fill = np.where((lo == hi) & (lo > 0), lo, 0)
+    fill[border] = 0
+    fill[0] = 0
+    return np.where(valid, lab, fill[cc]).astype(np.int32)
+
+
 class DepthSegmenter:
     """A `Segmenter` that needs no model: plane removal + depth/normal edges + connected components."""
 
@@ -297,22 +320,24 @@ class DepthSegmenter:
         pts[..., 1] = vv[:, None] * zm
         pts[..., 2] = zm
 
-        # 1. normals from edge-preserving smoothed depth, central differences over +-normal_step px
-        zb = cv2.bilateralFilter(zm, 7, o.smooth_depth_m, 3.0)
+        # 1. normals from box-smoothed depth: n ~ (fx z_u, fy z_v, -(fx x z_u + fy y z_v + z)) for the pinhole
+        # model (x, y: normalised image coordinates; z_u, z_v: depth derivatives per working pixel), towards the camera
+        zb = cv2.boxFilter(zm, -1, (5, 5))
         zb = np.where(zm > 0, zb, zm)
+        k = o.normal_step
+        zu = np.zeros_like(zb)
+        zv = np.zeros_like(zb)
+        zu[:, k:-k] = (zb[:, 2 * k :] - zb[:, : -2 * k]) * np.float32(0.5 / k)
+        zv[k:-k] = (zb[2 * k :] - zb[: -2 * k]) * np.float32(0.5 / k)
+        nrm = np.empty((h, w, 3), np.float32)
+        nrm[..., 0] = np.float32(fx) * zu
+        nrm[..., 1] = np.float32(fy) * zv
+        nrm[..., 2] = -(nrm[..., 0] * uu[None, :] + nrm[..., 1] * vv[:, None] + zb)
+        nrm /= np.sqrt(np.einsum("ijk,ijk->ij", nrm, nrm))[..., None] + np.float32(1e-12)
         ps = np.empty_like(pts)
         ps[..., 0] = uu[None, :] * zb
         ps[..., 1] = vv[:, None] * zb
         ps[..., 2] = zb
-        k = o.normal_step
-        du = np.zeros_like(ps)
-        dv = np.zeros_like(ps)
-        du[:, k:-k] = ps[:, 2 * k :] - ps[:, : -2 * k]
-        dv[k:-k] = ps[2 * k :] - ps[: -2 * k]
-        nrm = np.cross(du, dv)
-        nrm /= np.linalg.norm(nrm, axis=2, keepdims=True) + 1e-12
-        flip = np.einsum("ijk,ijk->ij", nrm, ps) > 0
-        nrm[flip] *= -1
 
         # 2. support planes
         rng = np.random.default_rng(o.seed)
@@ -436,7 +461,8 @@ class DepthSegmenter:
         lab = final[lab]
         if next_id == 0:
             return np.zeros((h0, w0), np.int32), 0
+        lab = fill_enclosed_holes(lab, valid)
         up = cv2.resize(lab, (w0, h0), interpolation=cv2.INTER_NEAREST) if s > 1 else lab
-        valid_full = np.isfinite(depth_full) & (depth_full > 0)
-        up = np.where(valid_full, up, 0).astype(np.int32)
-        return up, next_id
+        # full-resolution dropouts: kept inside a label only where the working-resolution label covers them and some
+        # neighbour within the working pixel is valid or the dropout is enclosed (filled above)
+        return up.astype(np.int32), next_id
