@@ -322,13 +322,21 @@ class DepthSegmenter:
 
         # 1. normals from box-smoothed depth: n ~ (fx z_u, fy z_v, -(fx x z_u + fy y z_v + z)) for the pinhole
         # model (x, y: normalised image coordinates; z_u, z_v: depth derivatives per working pixel), towards the camera
-        zb = cv2.boxFilter(zm, -1, (5, 5))
+        zb = cv2.boxFilter(zm, -1, (3, 3))
         zb = np.where(zm > 0, zb, zm)
         k = o.normal_step
         zu = np.zeros_like(zb)
         zv = np.zeros_like(zb)
-        zu[:, k:-k] = (zb[:, 2 * k :] - zb[:, : -2 * k]) * np.float32(0.5 / k)
-        zv[k:-k] = (zb[2 * k :] - zb[: -2 * k]) * np.float32(0.5 / k)
+        # central differences; where the two one-sided differences disagree by more than a depth jump, the smaller
+        # one: a normal next to a depth jump is that of its own side
+        jt = (o.depth_jump_m + o.depth_jump_rel * zb)[:, k:-k]
+        dl, dr = zb[:, k:-k] - zb[:, : -2 * k], zb[:, 2 * k :] - zb[:, k:-k]
+        one = np.where(np.abs(dl) < np.abs(dr), dl, dr)
+        zu[:, k:-k] = np.where(np.abs(dl - dr) > jt, one, 0.5 * (dl + dr)) * np.float32(1.0 / k)
+        jt = (o.depth_jump_m + o.depth_jump_rel * zb)[k:-k]
+        dl, dr = zb[k:-k] - zb[: -2 * k], zb[2 * k :] - zb[k:-k]
+        one = np.where(np.abs(dl) < np.abs(dr), dl, dr)
+        zv[k:-k] = np.where(np.abs(dl - dr) > jt, one, 0.5 * (dl + dr)) * np.float32(1.0 / k)
         nrm = np.empty((h, w, 3), np.float32)
         nrm[..., 0] = np.float32(fx) * zu
         nrm[..., 1] = np.float32(fy) * zv
