@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins
+from normpos_grasp.templates import kernels
+from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import FloatArray
 
-NORMAL_COS = 0.35
+NORMAL_COS = kernels.NORMAL_COS
 
 
 def correspond(
@@ -33,36 +34,16 @@ def correspond_points(
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Closest normal-compatible model sample for object-frame points.
 
-    y, ny: (P, 3) points and their (measured) normals in the object frame.
+    y, ny: (P, 3) points and their (measured) normals in the object frame. `exact`: exact nearest samples
+    (KD-tree), else the distance grid's (outside the grid: no correspondence). A sample whose normal disagrees
+    with ny (cos <= 0.35) is replaced by the nearest one in the same normal bin (`prepared.normal_bins`).
     Returns residual (P,) point-to-plane distance, dist (P,) point-to-point distance (inf when none),
     model normal (P, 3) and model point (P, 3).
     """
-    if exact:
-        dist, idx = prep.tree.query(y)
-        ok = np.einsum("pd,pd->p", prep.normals[idx], ny) > NORMAL_COS
-        if not np.all(ok):
-            bad = np.flatnonzero(~ok)
-            d2, i2 = prep.nearest_binned(y[bad], normal_bins(ny[bad]))
-            dist[bad] = d2
-            idx[bad] = i2
-            ok[bad] = np.einsum("pd,pd->p", prep.normals[i2], ny[bad]) > NORMAL_COS
-        sel = idx
-        d = np.where(ok, dist, np.inf)
-    else:
-        sel, inside = prep.grid_lookup(y)
-        ok = np.einsum("pd,pd->p", prep.normals[sel], ny) > NORMAL_COS
-        if not np.all(ok):
-            bad = np.flatnonzero(~ok)
-            s2, in2 = prep.grid_lookup_binned(y[bad], normal_bins(ny[bad]))
-            sel[bad] = s2
-            inside[bad] = in2
-            ok[bad] = np.einsum("pd,pd->p", prep.normals[s2], ny[bad]) > NORMAL_COS
-        has = (inside > 0) & ok
-        d = np.where(has, np.linalg.norm(y - prep.samples[sel], axis=-1), np.inf)
-    n = prep.normals[sel]
-    m = prep.samples[sel]
-    r = np.einsum("pd,pd->p", y - m, n)
-    return r, d, n, m
+    y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1, 3)
+    ny = np.ascontiguousarray(ny, dtype=np.float64).reshape(-1, 3)
+    r, d, sel = kernels.correspond_many(y, ny, exact, prep.samples, prep.normals, prep.grid, prep.kd)
+    return r, d, prep.normals[sel], prep.samples[sel]
 
 
 def icp(
@@ -92,104 +73,72 @@ def icp(
     except with `exact` or in the last `exact_last` iterations (KD-tree, normal-compatible); residuals
     above the `trim` quantile are dropped and the rest Huber-weighted.
     point_weight: weight of an added point-to-point term (fixes motions within a single visible plane).
-    converge_m: once the gate is at its floor and no hypothesis moves more than this (metres, rotation taken
-    at one diameter; default 2e-6 diameter), the grid stage ends early (the exact stage follows) and the
-    exact stage stops.
+    converge_m: once the gate is at its floor and a hypothesis moves less than this (metres, rotation taken
+    at one diameter; default 2e-6 diameter), its grid stage ends early (the exact stage follows) or, in the
+    exact stage, it stops (each hypothesis on its own).
     prune_after / prune_keep: after `prune_after` iterations only the `prune_keep` hypotheses with the highest
     inlier fraction go on (early rejection of hopeless starting poses; 0 = off). The returned arrays then
     hold only the kept hypotheses.
     Returns poses, scales and the (H,) inlier fraction at the last iteration.
+    The iterations run in the compiled `kernels.icp_run` (GIL released).
     """
-    poses = poses.copy()
-    scales = scales.copy()
+    poses = np.array(poses, dtype=np.float64, order="C").reshape(-1, 4, 4)
+    scales = np.array(scales, dtype=np.float64).reshape(-1)
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    nrm = np.ascontiguousarray(nrm, dtype=np.float64)
+    thr = np.ascontiguousarray(thr, dtype=np.float64)
     h = len(poses)
-    p = len(pts)
-    c = prep.centroid
+    frac = np.zeros(h)
+    if h == 0 or iterations <= 0 or len(pts) == 0:
+        return poses, scales, frac
     gate_end = 3.0 * float(np.median(thr))
     ratio = (gate_end / max(max_corr_start, gate_end)) ** (1.0 / max(iterations - 1, 1))
+    gates = np.empty(iterations)
     gate = max(max_corr_start, gate_end)
-    frac = np.zeros(h)
-    dof = 7 if fit_scale else 6
+    for it in range(iterations):
+        gates[it] = gate
+        if it < iterations - 1:
+            gate = max(gate * ratio, gate_end)
+    exact_iter = np.array([exact or it >= iterations - exact_last for it in range(iterations)])
+    jump_to = iterations - exact_last if (not exact and exact_last > 0) else iterations
     # a prior keeping the scale near 1 unless the data insist (equivalent to a few points at 1 diameter)
     prior = 0.1 * prep.diameter**2
     converge = converge_m if converge_m is not None else 2e-6 * prep.diameter
-    it = 0
-    while it < iterations:
-        rot = poses[:, :3, :3]
-        y = (np.einsum("hij,pj->hpi", rot, pts) + poses[:, None, :3, 3]) / scales[:, None, None]
-        ny = np.einsum("hij,pj->hpi", rot, nrm)
-        use_exact = exact or it >= iterations - exact_last
-        r, d, n, m = correspond_points(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=use_exact)
-        r = r.reshape(h, p)
-        d = d.reshape(h, p)
-        n = n.reshape(h, p, 3)
-        m = m.reshape(h, p, 3)
-        valid = d < gate
-        absr = np.abs(r)
-        frac = (valid & (absr < thr[None])).mean(axis=1)
-        # trimming per hypothesis
-        big = np.where(valid, absr, np.inf)
-        cnt = valid.sum(1)
-        kth = np.clip((trim * cnt).astype(int) - 1, 0, p - 1)
-        cut = np.take_along_axis(np.sort(big, axis=1), kth[:, None], axis=1)[:, 0]
-        valid &= absr <= np.maximum(cut, thr.min())[:, None]
-        hub = np.where(absr > thr[None], thr[None] / np.maximum(absr, 1e-12), 1.0)
-        w = valid * hub
-        jac = np.empty((h, p, dof))
-        jac[..., :3] = _cross(y, n)
-        jac[..., 3:6] = n
-        if fit_scale:
-            jac[..., 6] = -np.einsum("hpd,hpd->hp", n, y - c)
-        jw = jac * w[..., None]
-        a = jw.transpose(0, 2, 1) @ jac
-        b = np.asarray(-(jw.transpose(0, 2, 1) @ r[..., None])[..., 0], dtype=np.float64)
-        if point_weight > 0:
-            # a light point-to-point term pins the in-plane motions point-to-plane leaves free (one flat face);
-            # per point J = [-[y]x, I(, -(y - c))]: J^T W J and J^T W e summed in closed form over the points
-            wp = np.asarray(w * point_weight, dtype=np.float64)
-            ap, bp = point_to_point_normal_equations(y, y - m, wp, c, fit_scale=fit_scale)
-            a += ap
-            b += bp
-        a += np.eye(dof)[None] * 1e-9
-        if fit_scale:
-            a[:, 6, 6] += prior
-            b[:, 6] -= prior * (scales - 1.0)
-        enough = cnt >= 6
-        a[~enough] = np.eye(dof)
-        b[~enough] = 0.0
-        delta = np.asarray(np.linalg.solve(a, b[..., None])[..., 0], dtype=np.float64)
-        delta[~enough] = 0.0
-        rd = batched_rodrigues(delta[:, :3])
-        sig = delta[:, 6] if fit_scale else np.zeros(h)
-        s_new = np.clip(scales / (1.0 - np.clip(sig, -0.5, 0.5)), 1.0 - scale_tolerance, 1.0 + scale_tolerance)
-        new = np.tile(np.eye(4), (h, 1, 1))
-        new[:, :3, :3] = rd @ poses[:, :3, :3]
-        new[:, :3, 3] = (
-            np.einsum("hij,hj->hi", rd, poses[:, :3, 3])
-            + scales[:, None] * delta[:, 3:6]
-            + (s_new - scales)[:, None] * c[None]
+    it_state = np.zeros(h, dtype=np.int64)
+
+    def run(stop: int) -> None:
+        kernels.icp_run(
+            poses,
+            scales,
+            frac,
+            it_state,
+            pts,
+            nrm,
+            thr,
+            gates,
+            exact_iter,
+            stop,
+            jump_to,
+            gate_end,
+            fit_scale,
+            float(scale_tolerance),
+            float(trim),
+            float(point_weight),
+            prior,
+            float(converge),
+            prep.centroid,
+            prep.diameter,
+            prep.samples,
+            prep.normals,
+            prep.grid,
+            prep.kd,
         )
-        poses = new
-        scales = s_new
-        at_floor = gate <= gate_end
-        if it < iterations - 1:
-            gate = max(gate * ratio, gate_end)
-        it += 1
-        if prune_after and it == prune_after and h > prune_keep > 0:
-            top = np.sort(np.argsort(-frac, kind="stable")[:prune_keep])
-            poses, scales, frac = poses[top], scales[top], frac[top]
-            h = len(poses)
-            continue
-        # converged (motion of every hypothesis below `converge`, gate at its floor): the correspondences and
-        # so the poses would not change any more; go on with the exact stage or stop
-        moved = float(
-            np.max(np.linalg.norm(delta[:, :3], axis=1) * prep.diameter + np.linalg.norm(delta[:, 3:6], axis=1))
-        )
-        if at_floor and moved < converge:
-            if not exact and exact_last > 0 and it < iterations - exact_last:
-                it = iterations - exact_last
-            else:
-                break
+
+    if prune_after and h > prune_keep > 0 and prune_after < iterations:
+        run(prune_after)
+        top = np.sort(np.argsort(-frac, kind="stable")[:prune_keep])
+        poses, scales, frac, it_state = poses[top], scales[top], frac[top], it_state[top]
+    run(iterations)
     return poses, scales, frac
 
 

@@ -36,6 +36,8 @@ class PreparedTemplate:
     diameter: metres. spacing: mean sample spacing, metres. grid_origin (3,), grid_cell: distance-grid frame;
     grid_index: (G, G, G) nearest sample per cell. sym: (M, 4, 4) symmetry transforms incl. identity.
     desc_idx: (F,) sample indices with FPFH descriptors `desc` (F, 33); desc_tree on them.
+    grid / kd: the distance grids and flat KD-trees (all samples, then per normal bin) in the layout of
+    `kernels` (compiled correspondences).
     """
 
     samples: FloatArray
@@ -56,6 +58,8 @@ class PreparedTemplate:
     desc: FloatArray
     desc_tree: cKDTree
     voxel: float
+    grid: tuple[np.ndarray, ...]
+    kd: tuple[np.ndarray, ...]
 
     def grid_lookup(self, points: FloatArray) -> tuple[IntArray, FloatArray]:
         """(P, 3) object-frame points -> nearest-sample index (P,) and a bool-as-float inside-grid flag (P,)."""
@@ -159,6 +163,9 @@ def _build(template: Template) -> PreparedTemplate:
         _, bi = btree.query(flat)
         bin_grids[b] = members[np.asarray(bi)].reshape(GRID, GRID, GRID)
         bin_trees.append((btree, members))
+    from normpos_grasp.templates.kernels import build_kdtrees
+
+    kd = build_kdtrees(samples, [np.arange(len(samples))] + [m for _, m in bin_trees])
     voxel = diameter / 18.0
     keep = voxel_downsample(samples, voxel)
     desc = fpfh(samples[keep], normals[keep], voxel * 2.5)
@@ -181,6 +188,8 @@ def _build(template: Template) -> PreparedTemplate:
         desc=desc,
         desc_tree=cKDTree(desc),
         voxel=voxel,
+        grid=(np.asarray(origin, dtype=np.float64), np.array([cell]), grid_index, bin_grids),
+        kd=kd,
     )
 
 

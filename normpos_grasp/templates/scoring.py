@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.geometry.transforms import invert_pose, look_at
+from normpos_grasp.templates import kernels
 from normpos_grasp.templates.icp import correspond
 from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
@@ -46,26 +47,7 @@ def visible_samples(
     cfo = camera_from_frame @ frame_from_object
     pc = (prep.samples * scale) @ cfo[:3, :3].T + cfo[:3, 3]
     nc = prep.normals @ cfo[:3, :3].T
-    dist = np.linalg.norm(pc, axis=1)
-    facing = np.einsum("ij,ij->i", nc, -pc) > 0.05 * dist
-    facing &= pc[:, 2] > 1e-3
-    if not np.any(facing):
-        return facing, pc
-    z = pc[:, 2]
-    cell = 1.6 * prep.spacing * scale / float(np.median(z[facing]))
-    uv = np.floor(pc[:, :2] / np.maximum(z, 1e-3)[:, None] / cell).astype(np.int64)
-    idx = np.flatnonzero(facing)
-    key = uv[idx, 0] * 1_000_003 + uv[idx, 1]
-    order = np.lexsort((z[idx], key))
-    ks = key[order]
-    first = np.ones(len(order), dtype=bool)
-    first[1:] = ks[1:] != ks[:-1]
-    group = np.cumsum(first) - 1
-    zmin = z[idx][order][first][group]
-    vis_sorted = z[idx][order] <= zmin + 2.0 * prep.spacing * scale
-    visible = np.zeros(len(z), dtype=bool)
-    visible[idx[order[vis_sorted]]] = True
-    return visible, pc
+    return kernels.visible_mask(pc, nc, prep.spacing * scale), pc
 
 
 def score_bounds(
@@ -86,12 +68,17 @@ def score_bounds(
     h, p = len(object_from_frame), len(pts)
     if h == 0 or p == 0:
         return np.zeros(h), np.zeros((h, p)), np.full((h, p), np.inf)
-    rot = object_from_frame[:, :3, :3]
-    y = (np.einsum("hij,pj->hpi", rot, pts) + object_from_frame[:, None, :3, 3]) / scales[:, None, None]
-    ny = np.einsum("hij,pj->hpi", rot, nrm)
-    r, d, _ = correspond(prep, y.reshape(-1, 3), ny.reshape(-1, 3), exact=True)
-    r = r.reshape(h, p)
-    d = d.reshape(h, p)
+    r, d = kernels.correspond_posed(
+        np.ascontiguousarray(object_from_frame, dtype=np.float64),
+        np.ascontiguousarray(scales, dtype=np.float64),
+        np.ascontiguousarray(pts, dtype=np.float64),
+        np.ascontiguousarray(nrm, dtype=np.float64),
+        True,
+        prep.samples,
+        prep.normals,
+        prep.grid,
+        prep.kd,
+    )
     tol = float(np.median(thr))
     bound = np.zeros(h)
     for i in range(h):
@@ -257,21 +244,9 @@ def _window_stats(
     depth: FloatArray, uv: np.ndarray, inside: BoolArray, z: FloatArray, r: int
 ) -> tuple[FloatArray, FloatArray]:
     """Per (u, v) within +-r pixels: the nearest valid depth and the smallest |depth - z| (inf where none)."""
-    nearest = np.full(len(uv), np.inf)
-    closest = np.full(len(uv), np.inf)
-    idx = np.flatnonzero(inside)
-    if len(idx) == 0:
-        return nearest, closest
-    h, w = depth.shape
-    offs = np.arange(-r, r + 1)
-    du, dv = np.meshgrid(offs, offs)
-    uu = np.clip(uv[idx, 0][:, None] + du.ravel()[None], 0, w - 1)
-    vv = np.clip(uv[idx, 1][:, None] + dv.ravel()[None], 0, h - 1)
-    vals = depth[vv, uu]
-    vals = np.where((vals > 0) & np.isfinite(vals), vals, np.inf)
-    nearest[idx] = vals.min(axis=1)
-    closest[idx] = np.min(np.abs(vals - z[idx, None]), axis=1)
-    return nearest, closest
+    return kernels.window_stats(
+        np.ascontiguousarray(depth, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.int64), inside, z, r
+    )
 
 
 def _cell_keys(pc: FloatArray, cell: float) -> FloatArray:

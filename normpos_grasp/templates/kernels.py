@@ -1,0 +1,586 @@
+"""Compiled (numba, nogil) inner loops of the template fitter: correspondences, batched ICP, scoring helpers.
+
+The kernels keep the numpy implementation's semantics (same correspondence rules, gates, trimming, weights,
+normal equations and pose update) but run one hypothesis at a time without temporary arrays, and release the
+GIL so that several objects can be fitted in parallel threads (`fit.fit_many`).
+
+Shared arguments (built once per template in `prepared.PreparedTemplate`):
+    samples, normals: (S, 3) float64 template surface points and unit outward normals (object frame, metres).
+    grid: (origin (3,), cell (1,), index (G, G, G) int32, index_bins (6, G, G, G) int32): the distance grid
+        (nearest sample per cell, overall and per normal bin; -1 where a bin has no sample).
+    kd: (dim, split, left, right, start, end, perm, roots): flat arrays of 7 KD-trees over the samples
+        (all samples, then one per normal bin; roots (7,) with -1 for an empty bin); leaves hold
+        perm[start:end] (sample indices).
+Compiled on first use and cached on disk (`cache=True`), a few seconds once per installation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from normpos_grasp.typing import FloatArray, IntArray
+
+NORMAL_COS = 0.35
+LEAF_SIZE = 8
+_STACK = 128
+
+
+# -- KD-tree (built in numpy, queried in numba) -------------------------------------------------------------------
+
+
+def build_kdtrees(samples: FloatArray, groups: list[IntArray]) -> tuple[np.ndarray, ...]:
+    """Flat KD-trees over `samples` (S, 3), one per index group; returns the `kd` tuple described above."""
+    dim: list[int] = []
+    split: list[float] = []
+    left: list[int] = []
+    right: list[int] = []
+    start: list[int] = []
+    end: list[int] = []
+    perm: list[np.ndarray] = []
+    roots = np.full(len(groups), -1, dtype=np.int64)
+    offset = 0
+    for g, members in enumerate(groups):
+        members = np.asarray(members, dtype=np.int64)
+        if len(members) == 0:
+            continue
+        order = members.copy()
+        roots[g] = len(dim)
+        # iterative build: (node, lo, hi) ranges into `order`
+        dim.append(0)
+        split.append(0.0)
+        left.append(-1)
+        right.append(-1)
+        start.append(0)
+        end.append(0)
+        todo = [(roots[g], 0, len(order))]
+        while todo:
+            node, lo, hi = todo.pop()
+            idx = order[lo:hi]
+            if hi - lo <= LEAF_SIZE:
+                start[node] = offset + lo
+                end[node] = offset + hi
+                continue
+            pts = samples[idx]
+            ax = int(np.argmax(pts.max(0) - pts.min(0)))
+            srt = idx[np.argsort(pts[:, ax], kind="stable")]
+            order[lo:hi] = srt
+            mid = (hi - lo) // 2
+            dim[node] = ax
+            split[node] = float(samples[srt[mid], ax])
+            for child, (clo, chi) in enumerate(((lo, lo + mid), (lo + mid, hi))):
+                k = len(dim)
+                dim.append(0)
+                split.append(0.0)
+                left.append(-1)
+                right.append(-1)
+                start.append(0)
+                end.append(0)
+                if child == 0:
+                    left[node] = k
+                else:
+                    right[node] = k
+                todo.append((k, clo, chi))
+        perm.append(order)
+        offset += len(order)
+    return (
+        np.asarray(dim, dtype=np.int64),
+        np.asarray(split, dtype=np.float64),
+        np.asarray(left, dtype=np.int64),
+        np.asarray(right, dtype=np.int64),
+        np.asarray(start, dtype=np.int64),
+        np.asarray(end, dtype=np.int64),
+        np.concatenate(perm) if perm else np.zeros(0, dtype=np.int64),
+        roots,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _kd_nearest(q0, q1, q2, root, samples, kd, best_d2, best_i, stack_n, stack_b):  # type: ignore[no-untyped-def]
+    """Exact nearest sample of the tree at `root` to (q0, q1, q2), starting from an upper bound best_d2 / best_i."""
+    dim, split, left, right, start, end, perm, _ = kd
+    top = 0
+    stack_n[0] = root
+    stack_b[0] = 0.0
+    top = 1
+    while top > 0:
+        top -= 1
+        node = stack_n[top]
+        if stack_b[top] >= best_d2:
+            continue
+        while left[node] >= 0:
+            ax = dim[node]
+            q = q0 if ax == 0 else (q1 if ax == 1 else q2)
+            diff = q - split[node]
+            if diff < 0.0:
+                near = left[node]
+                far = right[node]
+            else:
+                near = right[node]
+                far = left[node]
+            dd = diff * diff
+            if dd < best_d2 and top < stack_n.shape[0]:
+                stack_n[top] = far
+                stack_b[top] = dd
+                top += 1
+            node = near
+        for j in range(start[node], end[node]):
+            s = perm[j]
+            a = samples[s, 0] - q0
+            b = samples[s, 1] - q1
+            c = samples[s, 2] - q2
+            d2 = a * a + b * b + c * c
+            if d2 < best_d2:
+                best_d2 = d2
+                best_i = s
+    return best_d2, best_i
+
+
+# -- correspondences --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _normal_bin(n0, n1, n2):  # type: ignore[no-untyped-def]
+    """Bin 0..5 of a normal: dominant axis and sign (+x, -x, +y, -y, +z, -z), as `prepared.normal_bins`."""
+    a0, a1, a2 = abs(n0), abs(n1), abs(n2)
+    if a0 >= a1 and a0 >= a2:
+        return 0 if n0 >= 0 else 1
+    if a1 >= a2:
+        return 2 if n1 >= 0 else 3
+    return 4 if n2 >= 0 else 5
+
+
+@njit(cache=True, nogil=True)
+def _cell(v, o, cell, g):  # type: ignore[no-untyped-def]
+    f = math.floor((v - o) / cell)
+    if not (f >= 0.0):  # also NaN
+        return 0, False
+    if f >= g:
+        return g - 1, False
+    return int(f), True
+
+
+@njit(cache=True, nogil=True)
+def _correspond_one(y0, y1, y2, n0, n1, n2, exact, samples, normals, grid, kd, stack_n, stack_b):  # type: ignore[no-untyped-def]
+    """Closest normal-compatible sample of one object-frame point: (residual, distance (inf if none), index)."""
+    origin, cellarr, gi, gib = grid
+    g = gi.shape[0]
+    cell = cellarr[0]
+    i, ini = _cell(y0, origin[0], cell, g)
+    j, inj = _cell(y1, origin[1], cell, g)
+    k, ink = _cell(y2, origin[2], cell, g)
+    inside = ini and inj and ink
+    sel = int(gi[i, j, k])
+    ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
+    s_last = samples.shape[0] - 1
+    if not exact:
+        if not ok:
+            b = _normal_bin(n0, n1, n2)
+            s2 = int(gib[b, i, j, k])
+            inside = inside and s2 >= 0
+            sel = s2 if s2 >= 0 else s_last
+            ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
+        e0 = y0 - samples[sel, 0]
+        e1 = y1 - samples[sel, 1]
+        e2 = y2 - samples[sel, 2]
+        d = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) if (inside and ok) else np.inf
+    else:
+        e0 = y0 - samples[sel, 0]
+        e1 = y1 - samples[sel, 1]
+        e2 = y2 - samples[sel, 2]
+        d2, sel = _kd_nearest(y0, y1, y2, kd[7][0], samples, kd, e0 * e0 + e1 * e1 + e2 * e2, sel, stack_n, stack_b)
+        ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
+        if not ok:
+            b = _normal_bin(n0, n1, n2)
+            root = kd[7][1 + b]
+            if root < 0:
+                d2 = np.inf
+                sel = 0
+            else:
+                s2 = int(gib[b, i, j, k])
+                if s2 >= 0:
+                    e0 = y0 - samples[s2, 0]
+                    e1 = y1 - samples[s2, 1]
+                    e2 = y2 - samples[s2, 2]
+                    init = e0 * e0 + e1 * e1 + e2 * e2
+                else:
+                    init = np.inf
+                    s2 = 0
+                d2, sel = _kd_nearest(y0, y1, y2, root, samples, kd, init, s2, stack_n, stack_b)
+            ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
+        d = math.sqrt(d2) if ok else np.inf
+    r = (
+        (y0 - samples[sel, 0]) * normals[sel, 0]
+        + (y1 - samples[sel, 1]) * normals[sel, 1]
+        + (y2 - samples[sel, 2]) * normals[sel, 2]
+    )
+    return r, d, sel
+
+
+@njit(cache=True, nogil=True)
+def correspond_many(y, ny, exact, samples, normals, grid, kd):  # type: ignore[no-untyped-def]
+    """(P, 3) object-frame points and normals -> residual (P,), distance (P,), sample index (P,)."""
+    p = y.shape[0]
+    r = np.empty(p)
+    d = np.empty(p)
+    idx = np.empty(p, dtype=np.int64)
+    stack_n = np.empty(_STACK, dtype=np.int64)
+    stack_b = np.empty(_STACK)
+    for q in range(p):
+        r[q], d[q], idx[q] = _correspond_one(
+            y[q, 0], y[q, 1], y[q, 2], ny[q, 0], ny[q, 1], ny[q, 2], exact, samples, normals, grid, kd, stack_n, stack_b
+        )
+    return r, d, idx
+
+
+@njit(cache=True, nogil=True)
+def correspond_posed(poses, scales, pts, nrm, exact, samples, normals, grid, kd):  # type: ignore[no-untyped-def]
+    """Correspondences of (P, 3) frame points under (H, 4, 4) object_from_frame poses / (H,) scales: r, d (H, P)."""
+    h = poses.shape[0]
+    p = pts.shape[0]
+    r = np.empty((h, p))
+    d = np.empty((h, p))
+    stack_n = np.empty(_STACK, dtype=np.int64)
+    stack_b = np.empty(_STACK)
+    for a in range(h):
+        rot = poses[a, :3, :3]
+        t = poses[a, :3, 3]
+        s = scales[a]
+        for q in range(p):
+            y0 = (rot[0, 0] * pts[q, 0] + rot[0, 1] * pts[q, 1] + rot[0, 2] * pts[q, 2] + t[0]) / s
+            y1 = (rot[1, 0] * pts[q, 0] + rot[1, 1] * pts[q, 1] + rot[1, 2] * pts[q, 2] + t[1]) / s
+            y2 = (rot[2, 0] * pts[q, 0] + rot[2, 1] * pts[q, 1] + rot[2, 2] * pts[q, 2] + t[2]) / s
+            n0 = rot[0, 0] * nrm[q, 0] + rot[0, 1] * nrm[q, 1] + rot[0, 2] * nrm[q, 2]
+            n1 = rot[1, 0] * nrm[q, 0] + rot[1, 1] * nrm[q, 1] + rot[1, 2] * nrm[q, 2]
+            n2 = rot[2, 0] * nrm[q, 0] + rot[2, 1] * nrm[q, 1] + rot[2, 2] * nrm[q, 2]
+            r[a, q], d[a, q], _ = _correspond_one(
+                y0, y1, y2, n0, n1, n2, exact, samples, normals, grid, kd, stack_n, stack_b
+            )
+    return r, d
+
+
+# -- ICP --------------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def _solve(a, b, n):  # type: ignore[no-untyped-def]
+    """Solve the n x n system a x = b in place (Gaussian elimination, partial pivoting); returns x."""
+    for col in range(n):
+        piv = col
+        best = abs(a[col, col])
+        for row in range(col + 1, n):
+            if abs(a[row, col]) > best:
+                best = abs(a[row, col])
+                piv = row
+        if piv != col:
+            for c in range(n):
+                tmp = a[col, c]
+                a[col, c] = a[piv, c]
+                a[piv, c] = tmp
+            tmp = b[col]
+            b[col] = b[piv]
+            b[piv] = tmp
+        dg = a[col, col]
+        if dg == 0.0:
+            continue
+        for row in range(col + 1, n):
+            f = a[row, col] / dg
+            if f != 0.0:
+                for c in range(col, n):
+                    a[row, c] -= f * a[col, c]
+                b[row] -= f * b[col]
+    x = np.zeros(n)
+    for row in range(n - 1, -1, -1):
+        acc = b[row]
+        for c in range(row + 1, n):
+            acc -= a[row, c] * x[c]
+        x[row] = acc / a[row, row] if a[row, row] != 0.0 else 0.0
+    return x
+
+
+@njit(cache=True, nogil=True)
+def _rodrigues(k0, k1, k2, st, ct):  # type: ignore[no-untyped-def]
+    """I + st [k]x + ct [k]x^2 (3, 3) for a unit axis k (st = sin, ct = 1 - cos of the angle)."""
+    kx = np.zeros((3, 3))
+    kx[0, 1] = -k2
+    kx[0, 2] = k1
+    kx[1, 0] = k2
+    kx[1, 2] = -k0
+    kx[2, 0] = -k1
+    kx[2, 1] = k0
+    rd = np.eye(3)
+    for u in range(3):
+        for v in range(3):
+            rd[u, v] += st * kx[u, v] + ct * (kx[u, 0] * kx[0, v] + kx[u, 1] * kx[1, v] + kx[u, 2] * kx[2, v])
+    return rd
+
+
+@njit(cache=True, nogil=True)
+def icp_run(  # type: ignore[no-untyped-def]
+    poses,
+    scales,
+    frac,
+    it_state,
+    pts,
+    nrm,
+    thr,
+    gates,
+    exact_iter,
+    it_stop,
+    jump_to,
+    gate_end,
+    fit_scale,
+    scale_tolerance,
+    trim,
+    point_weight,
+    prior,
+    converge,
+    centroid,
+    diameter,
+    samples,
+    normals,
+    grid,
+    kd,
+):
+    """Trimmed point-to-plane ICP iterations of every hypothesis, in place.
+
+    poses (H, 4, 4) object_from_frame, scales (H,), frac (H,) inlier fraction of the last iteration,
+    it_state (H,) next iteration of each hypothesis (set to `len(gates)` once converged); pts / nrm (P, 3)
+    frame points / normals, thr (P,) inlier distances; gates (I,) correspondence gate per iteration, exact_iter
+    (I,) exact (KD-tree) correspondences per iteration; iterations run while it < it_stop. A hypothesis whose
+    gate is at its floor (gate_end) and that moved less than `converge` (metres, rotation at one diameter)
+    jumps to iteration `jump_to` (the exact stage) when that lies ahead, else stops.
+    """
+    h = poses.shape[0]
+    p = pts.shape[0]
+    n_it = gates.shape[0]
+    dof = 7 if fit_scale else 6
+    thr_min = np.inf
+    for q in range(p):
+        thr_min = min(thr_min, thr[q])
+    y = np.empty((p, 3))
+    r = np.empty(p)
+    d = np.empty(p)
+    sel = np.empty(p, dtype=np.int64)
+    absv = np.empty(p)
+    a = np.empty((7, 7))
+    b = np.empty(7)
+    jac = np.empty(7)
+    jp = np.empty((3, 7))
+    stack_n = np.empty(_STACK, dtype=np.int64)
+    stack_b = np.empty(_STACK)
+    c0, c1, c2 = centroid[0], centroid[1], centroid[2]
+    for hh in range(h):
+        while it_state[hh] < it_stop:
+            it = it_state[hh]
+            gate = gates[it]
+            exact = exact_iter[it]
+            rot = poses[hh, :3, :3].copy()
+            t = poses[hh, :3, 3].copy()
+            s = scales[hh]
+            # correspondences
+            cnt = 0
+            inl = 0
+            for q in range(p):
+                y0 = (rot[0, 0] * pts[q, 0] + rot[0, 1] * pts[q, 1] + rot[0, 2] * pts[q, 2] + t[0]) / s
+                y1 = (rot[1, 0] * pts[q, 0] + rot[1, 1] * pts[q, 1] + rot[1, 2] * pts[q, 2] + t[1]) / s
+                y2 = (rot[2, 0] * pts[q, 0] + rot[2, 1] * pts[q, 1] + rot[2, 2] * pts[q, 2] + t[2]) / s
+                n0 = rot[0, 0] * nrm[q, 0] + rot[0, 1] * nrm[q, 1] + rot[0, 2] * nrm[q, 2]
+                n1 = rot[1, 0] * nrm[q, 0] + rot[1, 1] * nrm[q, 1] + rot[1, 2] * nrm[q, 2]
+                n2 = rot[2, 0] * nrm[q, 0] + rot[2, 1] * nrm[q, 1] + rot[2, 2] * nrm[q, 2]
+                y[q, 0] = y0
+                y[q, 1] = y1
+                y[q, 2] = y2
+                r[q], d[q], sel[q] = _correspond_one(
+                    y0, y1, y2, n0, n1, n2, exact, samples, normals, grid, kd, stack_n, stack_b
+                )
+                if d[q] < gate:
+                    absv[cnt] = abs(r[q])
+                    cnt += 1
+                    if abs(r[q]) < thr[q]:
+                        inl += 1
+            frac[hh] = inl / p
+            # trimming: keep residuals up to the `trim` quantile of the valid ones (at least thr_min)
+            kth = int(trim * cnt) - 1
+            kth = min(max(kth, 0), p - 1)
+            if kth < cnt:
+                cut = np.partition(absv[:cnt], kth)[kth]
+            else:
+                cut = np.inf
+            cut = max(cut, thr_min)
+            # normal equations
+            for u in range(7):
+                b[u] = 0.0
+                for v in range(7):
+                    a[u, v] = 0.0
+            for q in range(p):
+                if not (d[q] < gate) or abs(r[q]) > cut:
+                    continue
+                ar = abs(r[q])
+                w = thr[q] / max(ar, 1e-12) if ar > thr[q] else 1.0
+                m = sel[q]
+                nx, ny_, nz = normals[m, 0], normals[m, 1], normals[m, 2]
+                y0, y1, y2 = y[q, 0], y[q, 1], y[q, 2]
+                jac[0] = y1 * nz - y2 * ny_
+                jac[1] = y2 * nx - y0 * nz
+                jac[2] = y0 * ny_ - y1 * nx
+                jac[3] = nx
+                jac[4] = ny_
+                jac[5] = nz
+                if fit_scale:
+                    jac[6] = -(nx * (y0 - c0) + ny_ * (y1 - c1) + nz * (y2 - c2))
+                for u in range(dof):
+                    wu = w * jac[u]
+                    b[u] -= wu * r[q]
+                    for v in range(u, dof):
+                        a[u, v] += wu * jac[v]
+                if point_weight > 0.0:
+                    wp = w * point_weight
+                    e0 = y0 - samples[m, 0]
+                    e1 = y1 - samples[m, 1]
+                    e2 = y2 - samples[m, 2]
+                    # J = [-[y]x, I, -(y - c)] (3 x dof)
+                    jp[0, 0] = 0.0
+                    jp[0, 1] = y2
+                    jp[0, 2] = -y1
+                    jp[1, 0] = -y2
+                    jp[1, 1] = 0.0
+                    jp[1, 2] = y0
+                    jp[2, 0] = y1
+                    jp[2, 1] = -y0
+                    jp[2, 2] = 0.0
+                    for rr in range(3):
+                        for cc in range(3):
+                            jp[rr, 3 + cc] = 1.0 if rr == cc else 0.0
+                    jp[0, 6] = -(y0 - c0)
+                    jp[1, 6] = -(y1 - c1)
+                    jp[2, 6] = -(y2 - c2)
+                    for u in range(dof):
+                        b[u] -= wp * (jp[0, u] * e0 + jp[1, u] * e1 + jp[2, u] * e2)
+                        for v in range(u, dof):
+                            a[u, v] += wp * (jp[0, u] * jp[0, v] + jp[1, u] * jp[1, v] + jp[2, u] * jp[2, v])
+            for u in range(dof):
+                a[u, u] += 1e-9
+                for v in range(u):
+                    a[u, v] = a[v, u]
+            if fit_scale:
+                a[6, 6] += prior
+                b[6] -= prior * (s - 1.0)
+            if cnt >= 6:
+                delta = _solve(a, b, dof)
+            else:
+                delta = np.zeros(dof)
+            # pose update
+            w0, w1, w2 = delta[0], delta[1], delta[2]
+            theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            if theta < 1e-12:
+                k0 = w0
+                k1 = w1
+                k2 = w2
+            else:
+                k0 = w0 / theta
+                k1 = w1 / theta
+                k2 = w2 / theta
+            st = math.sin(theta)
+            ct = 1.0 - math.cos(theta)
+            rd = _rodrigues(k0, k1, k2, st, ct)
+            sig = delta[6] if fit_scale else 0.0
+            sig = min(max(sig, -0.5), 0.5)
+            s_new = min(max(s / (1.0 - sig), 1.0 - scale_tolerance), 1.0 + scale_tolerance)
+            for u in range(3):
+                for v in range(3):
+                    poses[hh, u, v] = rd[u, 0] * rot[0, v] + rd[u, 1] * rot[1, v] + rd[u, 2] * rot[2, v]
+            for u in range(3):
+                poses[hh, u, 3] = (
+                    rd[u, 0] * t[0] + rd[u, 1] * t[1] + rd[u, 2] * t[2] + s * delta[3 + u] + (s_new - s) * centroid[u]
+                )
+            scales[hh] = s_new
+            it += 1
+            moved = theta * diameter + math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+            if gate <= gate_end and moved < converge:
+                it = jump_to if it < jump_to else n_it
+            it_state[hh] = it
+
+
+# -- scoring helpers --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def visible_mask(pc, nc, spacing_scaled):  # type: ignore[no-untyped-def]
+    """(S,) visibility of camera-frame samples pc (S, 3) with normals nc (S, 3): back-face culling + z-buffer.
+
+    The z-buffer cell is 1.6 spacing / median facing z (in normalised image units); a facing sample is visible
+    when its z is within 2 spacings of the nearest facing sample in its cell (as `scoring.visible_samples`).
+    """
+    s = pc.shape[0]
+    facing = np.zeros(s, dtype=np.bool_)
+    nf = 0
+    for i in range(s):
+        dist = math.sqrt(pc[i, 0] ** 2 + pc[i, 1] ** 2 + pc[i, 2] ** 2)
+        f = -(nc[i, 0] * pc[i, 0] + nc[i, 1] * pc[i, 1] + nc[i, 2] * pc[i, 2]) > 0.05 * dist
+        if f and pc[i, 2] > 1e-3:
+            facing[i] = True
+            nf += 1
+    visible = np.zeros(s, dtype=np.bool_)
+    if nf == 0:
+        return visible
+    zf = np.empty(nf)
+    j = 0
+    for i in range(s):
+        if facing[i]:
+            zf[j] = pc[i, 2]
+            j += 1
+    cell = 1.6 * spacing_scaled / np.median(zf)
+    ui = np.empty(s, dtype=np.int64)
+    vi = np.empty(s, dtype=np.int64)
+    umin = vmin = 1 << 62
+    umax = vmax = -(1 << 62)
+    for i in range(s):
+        if facing[i]:
+            z = max(pc[i, 2], 1e-3)
+            ui[i] = int(math.floor(pc[i, 0] / z / cell))
+            vi[i] = int(math.floor(pc[i, 1] / z / cell))
+            umin = min(umin, ui[i])
+            umax = max(umax, ui[i])
+            vmin = min(vmin, vi[i])
+            vmax = max(vmax, vi[i])
+    nu = umax - umin + 1
+    nv = vmax - vmin + 1
+    zmin = np.full((nu, nv), np.inf)
+    for i in range(s):
+        if facing[i]:
+            cu = ui[i] - umin
+            cv = vi[i] - vmin
+            if pc[i, 2] < zmin[cu, cv]:
+                zmin[cu, cv] = pc[i, 2]
+    lim = 2.0 * spacing_scaled
+    for i in range(s):
+        if facing[i] and pc[i, 2] <= zmin[ui[i] - umin, vi[i] - vmin] + lim:
+            visible[i] = True
+    return visible
+
+
+@njit(cache=True, nogil=True)
+def window_stats(depth, uv, inside, z, rad):  # type: ignore[no-untyped-def]
+    """Per (u, v) within +-rad pixels (clipped to the image): nearest valid depth and smallest |depth - z|."""
+    n = uv.shape[0]
+    hgt, wid = depth.shape
+    nearest = np.full(n, np.inf)
+    closest = np.full(n, np.inf)
+    for i in range(n):
+        if not inside[i]:
+            continue
+        for dv in range(-rad, rad + 1):
+            vv = min(max(uv[i, 1] + dv, 0), hgt - 1)
+            for du in range(-rad, rad + 1):
+                uu = min(max(uv[i, 0] + du, 0), wid - 1)
+                val = depth[vv, uu]
+                if val > 0 and np.isfinite(val):
+                    if val < nearest[i]:
+                        nearest[i] = val
+                    diff = abs(val - z[i])
+                    if diff < closest[i]:
+                        closest[i] = diff
+    return nearest, closest
