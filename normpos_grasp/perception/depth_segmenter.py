@@ -178,12 +178,12 @@ def _remove_rims(fg: np.ndarray, z: np.ndarray, fx: float, width_m: float, lengt
 
 
 def merge_continuous(
-    lab: np.ndarray, z: np.ndarray, jump_thr: np.ndarray, fx: float, max_extent_m: float, max_jump_fraction: float
+    lab: np.ndarray, jump_px: np.ndarray, z: np.ndarray, fx: float, max_extent_m: float, max_jump_fraction: float
 ) -> np.ndarray:
     """Merge touching components of the (h, w) int32 label image `lab` whose shared boundary is mostly free of
     depth jumps (a crease inside one part, like the inner corner of an L-bracket or a face cut off at a steep
     view) when the union stays within `max_extent_m` (metres, the size of the largest part); z: (h, w) depth, metres;
-    jump_thr: (h, w) depth-jump threshold, metres; fx: focal length at this resolution, pixels. Returns a new label
+    jump_px: (h, w) bool, pixels next to a depth jump; fx: focal length at this resolution, pixels. Returns a new label
     image (labels renumbered 1..K)."""
     n = int(lab.max())
     if n < 2:
@@ -193,12 +193,11 @@ def merge_continuous(
         for off in (1, 2):
             a = lab[:-off] if axis == 0 else lab[:, :-off]
             b = lab[off:] if axis == 0 else lab[:, off:]
-            za = z[:-off] if axis == 0 else z[:, :-off]
-            zb = z[off:] if axis == 0 else z[:, off:]
-            tt = jump_thr[:-off] if axis == 0 else jump_thr[:, :-off]
+            ja = jump_px[:-off] if axis == 0 else jump_px[:, :-off]
+            jb = jump_px[off:] if axis == 0 else jump_px[:, off:]
             m = (a != b) & (a > 0) & (b > 0)
             if m.any():
-                jump = np.abs(za[m] - zb[m]) > tt[m] * off
+                jump = ja[m] | jb[m]
                 lo, hi = np.minimum(a[m], b[m]), np.maximum(a[m], b[m])
                 pairs.append(np.column_stack([lo, hi, jump]))
     if not pairs:
@@ -266,6 +265,30 @@ def fill_enclosed_holes(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.where(valid, lab, fill[cc]).astype(np.int32)
 
 
+def _normals(
+    zb: np.ndarray, k: int, jump_m: float, jump_rel: float, fx: float, fy: float, uu: np.ndarray, vv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit normals (nx, ny, nz), each (h, w) float32, towards the camera, of the smoothed depth `zb` (h, w) metres:
+    central differences over +-k pixels; where the two one-sided differences disagree by more than a depth jump
+    (jump_m + jump_rel * z), the smaller one, so that a normal next to a depth jump is that of its own side.
+    uu (w,), vv (h,): normalised image coordinates of the columns and rows."""
+    zu = np.zeros_like(zb)
+    zv = np.zeros_like(zb)
+    for axis, out in ((1, zu), (0, zv)):
+        c = (slice(None), slice(k, -k)) if axis == 1 else (slice(k, -k), slice(None))
+        lo = (slice(None), slice(None, -2 * k)) if axis == 1 else (slice(None, -2 * k), slice(None))
+        hi = (slice(None), slice(2 * k, None)) if axis == 1 else (slice(2 * k, None), slice(None))
+        dl, dr = zb[c] - zb[lo], zb[hi] - zb[c]
+        one = np.where(np.abs(dl) < np.abs(dr), dl, dr)
+        jt = jump_m + jump_rel * zb[c]
+        out[c] = np.where(np.abs(dl - dr) > jt, one, 0.5 * (dl + dr)) * np.float32(1.0 / k)
+    nx = np.float32(fx) * zu
+    ny = np.float32(fy) * zv
+    nz = -(nx * uu[None, :] + ny * vv[:, None] + zb)
+    inv = np.float32(1.0) / (np.sqrt(nx * nx + ny * ny + nz * nz) + np.float32(1e-12))
+    return nx * inv, ny * inv, nz * inv
+
+
 class DepthSegmenter:
     """A `Segmenter` that needs no model: plane removal + depth/normal edges + connected components."""
 
@@ -292,6 +315,66 @@ class DepthSegmenter:
             out.append(Instance(mask=mask, label="", score=1.0, instance_id=len(out) + 1))
         return out
 
+    def _foreground(
+        self,
+        zm: np.ndarray,
+        valid: np.ndarray,
+        xs_m: np.ndarray,
+        ys_m: np.ndarray,
+        nx: np.ndarray,
+        ny: np.ndarray,
+        nz: np.ndarray,
+        fx: float,
+    ) -> np.ndarray:
+        """(h, w) bool: valid pixels off the support planes. The first (dominant) plane is removed with everything
+        behind it; further planes parallel or perpendicular to it only in connected inlier regions of at least
+        min_plane_area_m2. Planes are fitted on every second working pixel and applied to all."""
+        o = self.options
+        h, w = zm.shape
+        rng = np.random.default_rng(o.seed)
+        tol_img = o.plane_tolerance_m + o.plane_noise_factor * 0.0026 * zm * zm
+        sub_valid = np.zeros_like(valid)
+        sub_valid[::2, ::2] = valid[::2, ::2]
+        sidx = np.flatnonzero(sub_valid)
+        pts = np.column_stack([xs_m.reshape(-1)[sidx], ys_m.reshape(-1)[sidx], zm.reshape(-1)[sidx]])
+        t_sub = tol_img.reshape(-1)[sidx]
+        f_sub = t_sub - (o.plane_tolerance_m - o.fit_tolerance_m)
+
+        def dist(n: FloatArray, d: float) -> np.ndarray:
+            return (np.float32(n[0]) * xs_m + np.float32(n[1]) * ys_m + np.float32(n[2]) * zm) + np.float32(d)
+
+        n1, d1, _ = ransac_plane(pts, f_sub, o.ransac_iterations, o.ransac_samples, rng)
+        n1, d1 = refine_plane(pts, f_sub, n1, d1)
+        removed = (dist(n1, d1) < tol_img) | ~valid  # on the first plane or behind it
+        removed_sub = removed.reshape(-1)[sidx]
+        n_sub = len(sidx)
+        cos_plane = np.float32(np.cos(np.radians(o.plane_normal_deg)))
+        px_area = (zm / fx) ** 2  # m^2 seen by each working pixel (fronto-parallel)
+        for _ in range(3):
+            rest = np.flatnonzero(~removed_sub)
+            if len(rest) < o.min_plane_fraction * n_sub:
+                break
+            n, d, _ = ransac_plane(pts[rest], f_sub[rest], o.ransac_iterations, o.ransac_samples, rng)
+            n, d = refine_plane(pts[rest], f_sub[rest], n, d)
+            on_plane = (np.abs(dist(n, d)) < tol_img) & ~removed
+            frac = np.count_nonzero(on_plane.reshape(-1)[sidx]) / n_sub
+            cosang = abs(float(n @ n1))
+            if frac < o.min_plane_fraction or 0.2 < cosang < 0.95:
+                break
+            # remove only connected inlier regions larger than any part face (tops of parts at one height are not
+            # a support surface), of inliers whose normal agrees with the plane's (a curved part touching a rail at
+            # the rail's height does not join the rail's region)
+            agree = np.abs(nx * np.float32(n[0]) + ny * np.float32(n[1]) + nz * np.float32(n[2])) > cos_plane
+            ncc, cc = cv2.connectedComponents((on_plane & agree).astype(np.uint8), connectivity=8)
+            area = np.bincount(cc.reshape(-1), weights=px_area.reshape(-1), minlength=ncc)
+            big = area >= o.min_plane_area_m2
+            big[0] = False
+            if not big[1:].any():
+                break
+            removed |= big[cc]
+            removed_sub = removed.reshape(-1)[sidx]
+        return ~removed
+
     def label_image(self, frame: RGBDFrame) -> tuple[np.ndarray, int]:
         """(H, W) int32 label image at frame resolution (0 = background) and the number of labels."""
         o = self.options
@@ -315,87 +398,26 @@ class DepthSegmenter:
         zm = np.where(zm > 0, zm, zf)
         uu = (np.arange(w, dtype=np.float32) - cx) / fx
         vv = (np.arange(h, dtype=np.float32) - cy) / fy
-        pts = np.empty((h, w, 3), np.float32)
-        pts[..., 0] = uu[None, :] * zm
-        pts[..., 1] = vv[:, None] * zm
-        pts[..., 2] = zm
+        xs_m, ys_m = uu[None, :] * zm, vv[:, None] * zm  # camera points (xs_m, ys_m, zm), metres
 
         # 1. normals from box-smoothed depth: n ~ (fx z_u, fy z_v, -(fx x z_u + fy y z_v + z)) for the pinhole
         # model (x, y: normalised image coordinates; z_u, z_v: depth derivatives per working pixel), towards the camera
         zb = cv2.boxFilter(zm, -1, (3, 3))
         zb = np.where(zm > 0, zb, zm)
         k = o.normal_step
-        zu = np.zeros_like(zb)
-        zv = np.zeros_like(zb)
-        # central differences; where the two one-sided differences disagree by more than a depth jump, the smaller
-        # one: a normal next to a depth jump is that of its own side
-        jt = (o.depth_jump_m + o.depth_jump_rel * zb)[:, k:-k]
-        dl, dr = zb[:, k:-k] - zb[:, : -2 * k], zb[:, 2 * k :] - zb[:, k:-k]
-        one = np.where(np.abs(dl) < np.abs(dr), dl, dr)
-        zu[:, k:-k] = np.where(np.abs(dl - dr) > jt, one, 0.5 * (dl + dr)) * np.float32(1.0 / k)
-        jt = (o.depth_jump_m + o.depth_jump_rel * zb)[k:-k]
-        dl, dr = zb[k:-k] - zb[: -2 * k], zb[2 * k :] - zb[k:-k]
-        one = np.where(np.abs(dl) < np.abs(dr), dl, dr)
-        zv[k:-k] = np.where(np.abs(dl - dr) > jt, one, 0.5 * (dl + dr)) * np.float32(1.0 / k)
-        nrm = np.empty((h, w, 3), np.float32)
-        nrm[..., 0] = np.float32(fx) * zu
-        nrm[..., 1] = np.float32(fy) * zv
-        nrm[..., 2] = -(nrm[..., 0] * uu[None, :] + nrm[..., 1] * vv[:, None] + zb)
-        nrm /= np.sqrt(np.einsum("ijk,ijk->ij", nrm, nrm))[..., None] + np.float32(1e-12)
-        ps = np.empty_like(pts)
-        ps[..., 0] = uu[None, :] * zb
-        ps[..., 1] = vv[:, None] * zb
-        ps[..., 2] = zb
+        nx, ny, nz = _normals(zb, k, o.depth_jump_m, o.depth_jump_rel, fx, fy, uu, vv)
+        xb, yb = uu[None, :] * zb, vv[:, None] * zb
 
         # 2. support planes
-        rng = np.random.default_rng(o.seed)
-        sigma = 0.0026 * zm * zm
-        tol_img = o.plane_tolerance_m + o.plane_noise_factor * sigma
-        flat_idx = np.flatnonzero(valid)
-        p_valid = pts.reshape(-1, 3)[flat_idx]
-        t_valid = tol_img.reshape(-1)[flat_idx]
-        f_valid = t_valid - (o.plane_tolerance_m - o.fit_tolerance_m)
-        n1, d1, _ = ransac_plane(p_valid, f_valid, o.ransac_iterations, o.ransac_samples, rng)
-        n1, d1 = refine_plane(p_valid, f_valid, n1, d1)
-        sd = p_valid @ n1 + d1
-        removed = sd < t_valid  # on the first plane or behind it
-        cos_plane = np.float32(np.cos(np.radians(o.plane_normal_deg)))
-        px_area = (zm.reshape(-1)[flat_idx] / fx) ** 2  # m^2 seen by each working pixel (fronto-parallel)
-        for _ in range(3):
-            rest = np.flatnonzero(~removed)
-            if len(rest) < o.min_plane_fraction * len(flat_idx):
-                break
-            n, d, _ = ransac_plane(p_valid[rest], f_valid[rest], o.ransac_iterations, o.ransac_samples, rng)
-            n, d = refine_plane(p_valid[rest], f_valid[rest], n, d)
-            on_plane = np.abs(p_valid[rest] @ n + d) < t_valid[rest]
-            frac = on_plane.sum() / len(flat_idx)
-            cosang = abs(float(n @ n1))
-            if frac < o.min_plane_fraction or 0.2 < cosang < 0.95:
-                break
-            # remove only connected inlier regions larger than any part face (tops of parts at one height are not
-            # a support surface)
-            inl = np.zeros(h * w, np.uint8)
-            # inliers whose normal agrees with the plane's: a curved part touching a rail at the rail's height
-            # does not join the rail's region
-            agree = np.abs(nrm.reshape(-1, 3)[flat_idx[rest]] @ n.astype(np.float32)) > cos_plane
-            inl[flat_idx[rest[on_plane & agree]]] = 1
-            ncc, cc = cv2.connectedComponents(inl.reshape(h, w), connectivity=8)
-            area = np.bincount(cc.reshape(-1)[flat_idx], weights=px_area, minlength=ncc)
-            big = area >= o.min_plane_area_m2
-            big[0] = False
-            if not big[1:].any():
-                break
-            removed |= big[cc.reshape(-1)[flat_idx]]
-        fg = np.zeros(h * w, bool)
-        fg[flat_idx[~removed]] = True
-        fg = fg.reshape(h, w)
+        fg = self._foreground(zm, valid, xs_m, ys_m, nx, ny, nz, fx)
         if o.rim_open_m > 0 and fg.any():
             fg = _remove_rims(fg, zm, fx, o.rim_open_m, o.rim_length_m)
 
         # 3. edges
         edge = np.zeros((h, w), bool)
+        jump_px = np.zeros((h, w), bool)
         jump_thr = o.depth_jump_m + o.depth_jump_rel * zm
-        cos_thr = np.cos(np.radians(o.crease_angle_deg))
+        cos_thr = np.float32(np.cos(np.radians(o.crease_angle_deg)))
         gap = 2 * k + 4  # normals compared across supports that do not overlap, with the smoothing's width between
         for axis in (0, 1):
             a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
@@ -408,23 +430,22 @@ class DepthSegmenter:
             around = np.maximum(sp[:-2], sp[2:]) if axis == 0 else np.maximum(sp[:, :-2], sp[:, 2:])
             jump = (step - around > jump_thr[a]) if o.steep_faces else (step > jump_thr[a])
             jump &= valid[a] & valid[b]
-            edge[a] |= jump
-            edge[b] |= jump
+            jump_px[a] |= jump
+            jump_px[b] |= jump
             a = (slice(None, -gap), slice(None)) if axis == 0 else (slice(None), slice(None, -gap))
             b = (slice(gap, None), slice(None)) if axis == 0 else (slice(None), slice(gap, None))
-            cos = np.einsum("ijk,ijk->ij", nrm[a], nrm[b])
-            concave = np.einsum("ijk,ijk->ij", nrm[a] - nrm[b], ps[a] - ps[b]) < 0
-            crease = (cos < cos_thr) & concave & valid[a] & valid[b]
+            cos = nx[a] * nx[b] + ny[a] * ny[b] + nz[a] * nz[b]
+            concave = (nx[a] - nx[b]) * (xb[a] - xb[b]) + (ny[a] - ny[b]) * (yb[a] - yb[b])
+            concave += (nz[a] - nz[b]) * (zb[a] - zb[b])
+            crease = (cos < cos_thr) & (concave < 0) & valid[a] & valid[b]
             for off in range(k + 1, gap - k):  # the pixels between the two supports
                 m = (
                     (slice(off, off + crease.shape[0]), slice(None))
                     if axis == 0
-                    else (
-                        slice(None),
-                        slice(off, off + crease.shape[1]),
-                    )
+                    else (slice(None), slice(off, off + crease.shape[1]))
                 )
                 edge[m] |= crease
+        edge |= jump_px
         core = fg & ~edge
 
         # 4. components
@@ -445,7 +466,7 @@ class DepthSegmenter:
         lab[grow] = pix_label[nearest[grow]]
 
         if o.merge_max_extent_m > 0:
-            lab = merge_continuous(lab, zm, jump_thr, fx, o.merge_max_extent_m, o.merge_max_jump_fraction)
+            lab = merge_continuous(lab, jump_px, zm, fx, o.merge_max_extent_m, o.merge_max_jump_fraction)
 
         # size / shape filters in metres
         final = np.zeros(int(lab.max()) + 1, np.int32)
