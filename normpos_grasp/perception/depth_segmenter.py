@@ -123,7 +123,13 @@ def ransac_plane(
         return np.array([0.0, 0.0, -1.0]), 0.0, 0
     normals = normals[ok] / norm[ok, None]
     ds = -np.einsum("ij,ij->i", normals, tri[ok, 0])
-    dist = np.abs(np.einsum("sj,ij->si", sub, normals) + ds[None, :])  # (S, I); einsum avoids BLAS threads
+    # (S, I) distances by broadcasting (no BLAS threads)
+    dist = np.abs(
+        sub[:, 0:1] * normals[None, :, 0]
+        + sub[:, 1:2] * normals[None, :, 1]
+        + sub[:, 2:3] * normals[None, :, 2]
+        + ds[None, :]
+    )
     support = (dist < sub_tol[:, None]).sum(axis=0)
     best = int(np.argmax(support))
     n, d = normals[best], float(ds[best])
