@@ -47,6 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--init-from", type=Path, default=None, help="start from this .pt state dict (fine-tuning)")
     p.add_argument("--time-limit-min", type=float, default=0.0, help="stop training after this many minutes (0: none)")
+    p.add_argument("--checkpoint-every", type=int, default=0, help="save OUT/normpos_seg.pt every N steps (0: at end)")
     p.set_defaults(handler=run)
 
 
@@ -86,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         time_limit_s=args.time_limit_min * 60.0,
         init_from=str(args.init_from) if args.init_from is not None else "",
+        checkpoint_every=args.checkpoint_every,
     )
     path = train(Path(data), args.out, options, log=lambda msg: tqdm.write(msg))
     print(f"model written to {path}")

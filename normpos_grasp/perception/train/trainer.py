@@ -46,7 +46,10 @@ class TrainOptions:
     (cosine decay, 200 warm-up steps); weight_decay: AdamW decay; threads: torch CPU threads; seed: RNG seed;
     time_limit_s: stop early after this many seconds of training (0 = no limit; a run that hits it is recorded as
     such in train.json and is reproducible only up to the step it reached); init_from: a .pt state dict to start
-    from (fine-tuning a previous run) instead of random weights.
+    from (fine-tuning a previous run) instead of random weights; checkpoint_every: write out_dir/normpos_seg.pt (+
+    train.json) every this many steps (0 = only at the end), so a long run that is stopped keeps its weights. With a
+    time limit the cosine learning-rate decay follows whichever is further along, steps or time, so a run cut by the
+    limit still ends at a small learning rate.
     """
 
     input_hw: tuple[int, int] = (192, 256)
@@ -60,6 +63,7 @@ class TrainOptions:
     seed: int = 0
     time_limit_s: float = 0.0
     init_from: str = ""
+    checkpoint_every: int = 0
 
 
 def _torch() -> object:
@@ -194,10 +198,26 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
     opt = torch.optim.AdamW(net.parameters(), lr=options.lr, weight_decay=options.weight_decay)
     warm = min(200, options.steps // 10)
 
-    def lr_at(step: int) -> float:
+    def lr_at(step: int, elapsed_s: float = 0.0) -> float:
         if step < warm:
             return options.lr * (step + 1) / warm
-        return options.lr * 0.5 * (1 + np.cos(np.pi * (step - warm) / max(1, options.steps - warm)))
+        frac = (step - warm) / max(1, options.steps - warm)
+        if options.time_limit_s > 0:
+            frac = max(frac, elapsed_s / options.time_limit_s)
+        return options.lr * 0.5 * (1 + np.cos(np.pi * min(frac, 1.0)))
+
+    def save(steps_done: int) -> None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = out_dir / "normpos_seg.pt.tmp"
+        torch.save(net.state_dict(), tmp)
+        tmp.replace(out_dir / "normpos_seg.pt")
+        info = {
+            "options": asdict(options),
+            "frames": len(xs),
+            "steps_done": steps_done,
+            "train_seconds": round(time.time() - t0, 1),
+        }
+        (out_dir / "train.json").write_text(json.dumps(info, indent=1))
 
     order = rng.permutation(len(xs))
     pos_ptr = 0
@@ -233,8 +253,9 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
             tb.append(b)
             tm.append(np.ascontiguousarray(m))
             tc.append(c)
+        lr = lr_at(step, time.time() - t0)
         for group in opt.param_groups:
-            group["lr"] = lr_at(step)
+            group["lr"] = lr
         box, cls, coef, protos = net(torch.from_numpy(batch_x))
         bsz, nc = cls.shape[:2]
         cls = cls.flatten(2).transpose(1, 2)  # (B, A, nc)
@@ -291,17 +312,11 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
             log(
                 f"step {step}/{options.steps} loss {float(loss.detach()):.3f} cls {float(loss_cls.detach()):.3f} "
                 f"box {float(loss_box.detach()) / npos_f:.3f} mask {float(loss_mask.detach()) / npos_f:.3f} "
-                f"lr {lr_at(step):.2e} {time.time() - t0:.0f}s"
+                f"lr {lr:.2e} {time.time() - t0:.0f}s"
             )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    torch.save(net.state_dict(), out_dir / "normpos_seg.pt")
-    info = {
-        "options": asdict(options),
-        "frames": len(xs),
-        "steps_done": steps_done,
-        "train_seconds": round(time.time() - t0, 1),
-    }
-    (out_dir / "train.json").write_text(json.dumps(info, indent=1))
+        if options.checkpoint_every > 0 and steps_done % options.checkpoint_every == 0:
+            save(steps_done)
+    save(steps_done)
     return export_onnx(net, out_dir / "normpos_seg.onnx", options)
 
 
