@@ -29,6 +29,7 @@ import numpy as np
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.errors import InputError, ModelFormatError
 from normpos_grasp.perception.base import Instance
+from normpos_grasp.perception.mask_refine import MaskRefineOptions, SoftMask, refine_masks
 from normpos_grasp.typing import Float32Array, FloatArray, UInt8Array
 
 logger = logging.getLogger(__name__)
@@ -51,6 +52,9 @@ class OnnxSegmenterOptions:
         min_mask_pixels: instances with fewer mask pixels (frame resolution) are dropped.
         num_threads: onnxruntime intra-op threads.
         input_size: (H, W) for models with dynamic input size; ignored for static models.
+        refine_masks: snap masks to depth steps at full resolution and resolve overlaps (`mask_refine`); applies
+            to RGB-D (4-channel) models only, a no-op for RGB models.
+        refine: settings of the refinement.
     """
 
     conf_threshold: float = 0.25
@@ -60,6 +64,8 @@ class OnnxSegmenterOptions:
     min_mask_pixels: int = 0
     num_threads: int = 2
     input_size: tuple[int, int] = (640, 640)
+    refine_masks: bool = True
+    refine: MaskRefineOptions = MaskRefineOptions()
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.conf_threshold <= 1.0 or not 0.0 < self.iou_threshold <= 1.0:
@@ -189,12 +195,14 @@ def nms_classwise(boxes: FloatArray, scores: FloatArray, classes: np.ndarray, io
 @dataclass(frozen=True)
 class Detections:
     """Decoded detections in frame pixels: boxes (N, 4) xyxy float64, scores (N,), classes (N,) int64,
-    masks (N, H, W) bool."""
+    masks (N, H, W) bool (thresholded, cropped to the box); soft: N soft masks on windows around the boxes where
+    asked for (`decode(soft_margin_px=...)`), else empty."""
 
     boxes: FloatArray
     scores: FloatArray
     classes: np.ndarray
     masks: np.ndarray
+    soft: tuple[SoftMask, ...] = ()
 
 
 def decode(
@@ -204,8 +212,10 @@ def decode(
     input_hw: tuple[int, int],
     image_hw: tuple[int, int],
     options: OnnxSegmenterOptions,
+    soft_margin_px: int | None = None,
 ) -> Detections:
-    """Decode the raw outputs (1, 4 + nc + nm, A) and (1, nm, mh, mw) into frame-size detections."""
+    """Decode the raw outputs (1, 4 + nc + nm, A) and (1, nm, mh, mw) into frame-size detections; with
+    `soft_margin_px` also the soft (probability) masks on each box grown by that many pixels (`Detections.soft`)."""
     nm, mh, mw = protos.shape[1:]
     pred = output0[0]
     nc = pred.shape[0] - 4 - nm
@@ -240,23 +250,34 @@ def decode(
     # each mask: the bilinear resize of the (unpadded) prototype mask to the frame, evaluated only inside its box
     # (cv2.resize's pixel-centre mapping, computed for the box window with warpAffine), then thresholded
     masks = np.zeros((len(keep), h0, w0), dtype=bool)
+    soft: list[SoftMask] = []
     ph, pw = prob.shape[1:]
     ax, ay = pw / w0, ph / h0
+    margin = -1 if soft_margin_px is None else int(soft_margin_px)
     for k, (x1, y1, x2, y2) in enumerate(boxes):
         xa, ya = int(np.floor(x1)), int(np.floor(y1))
         xb, yb = int(np.ceil(x2)), int(np.ceil(y2))
         if xb <= xa or yb <= ya:
+            if margin >= 0:
+                soft.append(SoftMask(np.zeros((0, 0), np.float32), xa, ya))
             continue
-        m = np.array([[ax, 0.0, (xa + 0.5) * ax - 0.5], [0.0, ay, (ya + 0.5) * ay - 0.5]])
+        if margin >= 0:  # the soft window around the box; the box mask is its thresholded centre part
+            xs, ys = max(xa - margin, 0), max(ya - margin, 0)
+            xe, ye = min(xb + margin, w0), min(yb + margin, h0)
+        else:
+            xs, ys, xe, ye = xa, ya, xb, yb
+        m = np.array([[ax, 0.0, (xs + 0.5) * ax - 0.5], [0.0, ay, (ys + 0.5) * ay - 0.5]])
         win = cv2.warpAffine(
             np.ascontiguousarray(prob[k]),
             m,
-            (xb - xa, yb - ya),
+            (xe - xs, ye - ys),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             borderMode=cv2.BORDER_REPLICATE,
         )
-        masks[k, ya:yb, xa:xb] = win > options.mask_threshold
-    return Detections(boxes=boxes, scores=scores, classes=cls, masks=masks)
+        masks[k, ya:yb, xa:xb] = win[ya - ys : yb - ys, xa - xs : xb - xs] > options.mask_threshold
+        if margin >= 0:
+            soft.append(SoftMask(np.asarray(win, dtype=np.float32), xs, ys))
+    return Detections(boxes=boxes, scores=scores, classes=cls, masks=masks, soft=tuple(soft))
 
 
 def _parse_names(text: str) -> list[str]:
@@ -396,7 +417,15 @@ class OnnxSegmenter:
     def detect(self, rgb: UInt8Array, depth_m: FloatArray | None = None) -> Detections:
         """Detections (boxes, scores, classes, masks) in frame pixels for one image."""
         out0, out1, lb = self.run_raw(rgb, depth_m)
-        return decode(out0, out1, lb, self.input_hw, rgb.shape[:2], self.options)
+        refine = self.options.refine_masks and self.depth_spec is not None and depth_m is not None
+        margin = self.options.refine.margin_px if refine else None
+        det = decode(out0, out1, lb, self.input_hw, rgb.shape[:2], self.options, soft_margin_px=margin)
+        if not refine or len(det.scores) == 0:
+            return det
+        # refine_masks keeps a pixel only where its soft score beats every other instance's, so the overlap
+        # order is by score, independent of the detection order
+        masks = refine_masks(det.soft, depth_m, rgb.shape[:2], self.options.refine, rgb=rgb)
+        return Detections(det.boxes, det.scores, det.classes, masks, det.soft)
 
     def segment(self, frame: RGBDFrame) -> list[Instance]:
         """Instances of the frame, best score first, instance_id 1..N; [] when nothing is found."""
