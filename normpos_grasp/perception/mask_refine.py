@@ -11,13 +11,17 @@ one part above another), so the mask boundary is snapped to them:
    soft score exceeds `grow_prob` split into 4-connected *depth regions* (no region crosses a depth step);
 3. a region joins the instance when its mean soft score is at least `region_prob` (regions the prototypes put
    mostly inside, grown to their depth boundary), leaves it otherwise (blobs across a depth step, like the floor
-   beside a part); edge pixels and pixels without valid depth keep the plain `mask_prob` threshold, edge pixels
-   only next to a kept region;
-4. overlaps: a pixel claimed by several instances goes to the one with the highest soft score there;
-5. holes of at most `max_hole_px` pixels inside an instance are filled.
+   beside a part); an edge pixel goes with the region it continues without a step;
+4. colour decides the rest: pixels without valid depth (the sensor drops pixels along depth steps), edge pixels
+   that continue no region, and pixels where the depth regions and the soft mask disagree (contact lines of a
+   part with the floor, parts of nearly the same height) go to the nearer of the local mean colours of the sure
+   inside and sure outside pixels around them (a `colour_px` square); without colour, the soft threshold
+   `mask_prob` decides them;
+5. holes of at most `max_hole_px` pixels inside an instance are filled;
+6. overlaps: a pixel claimed by several instances goes to the one with the highest soft score there.
 
-Works in each instance's window (box plus `margin_px`), vectorised with OpenCV / numpy. Frames without any valid
-depth reduce to thresholding at `mask_prob` plus the overlap and hole steps.
+Works in each instance's window (box plus `margin_px`), vectorised with OpenCV / numpy. Without depth and
+colour this reduces to thresholding at `mask_prob` plus the hole and overlap steps.
 """
 
 from __future__ import annotations
@@ -51,10 +55,13 @@ class MaskRefineOptions:
         sure_prob: soft score (0..1) above which a pixel without depth counts as inside for sure.
         colour_px: size (pixels) of the neighbourhood whose sure inside / outside mean colours decide the pixels
             depth cannot (0 = no colour: those pixels take the plain `mask_prob` threshold).
+        colour_checks_depth: colour also decides the pixels where the depth regions and the soft mask disagree
+            (a region joined but the pixel's soft score is below `mask_prob`, or the reverse), as at contact lines
+            of a part with the floor or with a part of nearly the same height, where depth shows no step.
     """
 
-    edge_step_m: float = 0.004
-    edge_step_per_m2: float = 0.006
+    edge_step_m: float = 0.002
+    edge_step_per_m2: float = 0.003
     grow_prob: float = 0.15
     region_prob: float = 0.5
     mask_prob: float = 0.5
@@ -63,6 +70,7 @@ class MaskRefineOptions:
     median_px: int = 3
     sure_prob: float = 0.9
     colour_px: int = 9
+    colour_checks_depth: bool = True
 
     def __post_init__(self) -> None:
         if self.edge_step_m < 0 or self.edge_step_per_m2 < 0:
@@ -141,39 +149,32 @@ def _fill_holes(mask: np.ndarray, max_hole_px: int) -> np.ndarray:
     return (mask.astype(bool) | inner[labels]).astype(np.uint8)
 
 
-def _box_sums(values: np.ndarray, ys: np.ndarray, xs: np.ndarray, half: int) -> np.ndarray:
-    """Sums of `values` (h, w, c) over the (2 half + 1)^2 windows (clipped to the array) centred on the pixels
-    (ys, xs): (n, c), from an integral image."""
-    h, w = values.shape[:2]
-    ii = cv2.integral(values, sdepth=cv2.CV_64F).reshape(h + 1, w + 1, -1)
-    y0, y1 = np.maximum(ys - half, 0), np.minimum(ys + half + 1, h)
-    x0, x1 = np.maximum(xs - half, 0), np.minimum(xs + half + 1, w)
-    return ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]
-
-
 def _colour_vote(
     rgb: np.ndarray, sure_in: np.ndarray, sure_out: np.ndarray, undecided: np.ndarray, keep: np.ndarray, size: int
 ) -> np.ndarray:
     """`keep` with the undecided pixels reassigned to the nearer (RGB distance) of the local mean colours of the
     sure-inside and sure-outside pixels within a `size` x `size` neighbourhood (the window's mean colour of a side
     where none of its pixels is that near); pixels where a side is missing altogether keep their value."""
+    h, w = sure_in.shape
+    stack = np.zeros((h, w, 8), np.float32)
+    stack[..., 0] = sure_in
+    stack[..., 1] = sure_out
+    stack[..., 2:5][sure_in] = rgb[sure_in]
+    stack[..., 5:8][sure_out] = rgb[sure_out]
+    box = cv2.boxFilter(stack, -1, (size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
     ys, xs = np.nonzero(undecided)
-    c = rgb.astype(np.float32)
-    fin, fout = sure_in.astype(np.float32)[..., None], sure_out.astype(np.float32)[..., None]
-    stack = np.concatenate([fin, fout, c * fin, c * fout], axis=2)
-    sums = _box_sums(stack, ys, xs, size // 2)
+    sums = box[ys, xs].astype(np.float64)
     # where one side has no sure pixel nearby (wide holes), its mean colour over the whole window stands in
-    total = stack.reshape(-1, 8).sum(0)
-    for cnt, cols in ((0, slice(2, 5)), (1, slice(5, 8))):
+    for cnt, cols, side in ((0, slice(2, 5), sure_in), (1, slice(5, 8), sure_out)):
         lack = sums[:, cnt] < 0.5
         if lack.any():
-            sums[lack, cnt] = total[cnt]
-            sums[lack, cols] = total[cols]
+            sums[lack, cnt] = np.count_nonzero(side)
+            sums[lack, cols] = rgb[side].sum(0, dtype=np.float64)
     ok = (sums[:, 0] > 0.5) & (sums[:, 1] > 0.5)
     if not ok.any():
         return keep
     sums, ys, xs = sums[ok], ys[ok], xs[ok]
-    cc = c[ys, xs]
+    cc = rgb[ys, xs].astype(np.float64)
     d_in = ((cc - sums[:, 2:5] / sums[:, :1]) ** 2).sum(1)
     d_out = ((cc - sums[:, 5:8] / sums[:, 1:2]) ** 2).sum(1)
     out = keep.copy()
@@ -258,10 +259,17 @@ def refine_masks(
                 ok = joined > 0
                 sure_in[ey[ok], ex[ok]] = take[joined[ok]]
                 sure_out[ey[ok], ex[ok]] = ~take[joined[ok]]
+        default = plain
+        if opts.colour_checks_depth and rgb_u is not None and opts.colour_px > 0:
+            # where depth and the soft mask disagree, colour has the last word (depth's vote if it cannot tell)
+            doubt = (sure_in & ~plain) | (sure_out & plain & (p > opts.grow_prob))
+            default = np.where(doubt, sure_in, plain)
+            sure_in &= ~doubt
+            sure_out &= ~doubt
         undecided = ~(sure_in | sure_out)  # no depth or a depth-edge pixel, in the band of the soft mask
         keep = sure_in
         if undecided.any():
-            keep = keep | (undecided & plain)
+            keep = keep | (undecided & default)
             if rgb_u is not None and opts.colour_px > 0:
                 keep = _colour_vote(rgb_u[ya:yb, xa:xb], sure_in, sure_out, undecided, keep, opts.colour_px)
         if opts.max_hole_px > 0 and keep.any():

@@ -326,6 +326,9 @@ class OnnxSegmenter:
         so.intra_op_num_threads = self.options.num_threads
         so.inter_op_num_threads = 1
         so.log_severity_level = 3
+        # no busy-waiting of the worker threads after a run: they would burn a core beside the decoding and mask
+        # refinement that follow (and beside other processes on a shared CPU)
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
             self._session = ort.InferenceSession(str(self.model_path), so, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for unreadable models
