@@ -2,7 +2,8 @@
 
 Prints, for the bundled ONNX model and for DepthSegmenter: recall and precision at mask IoU 0.5 (ground truth with
 >= 400 visible pixels and visible fraction >= 0.3; predictions matching only smaller / more occluded parts are not
-counted), mean IoU of matches, class accuracy (model), and latency per 640x480 frame (median wall and CPU time
+counted), mean IoU of matches, class accuracy (model), for the model with and without its full-resolution mask
+refinement (normpos_grasp.perception.mask_refine), and latency per 640x480 frame (median wall and CPU time
 over repeats, onnxruntime / numpy limited to 2 threads).
 
     .venv/bin/python benchmarks/bench_segmentation.py --frames 40
@@ -14,6 +15,7 @@ import argparse
 import os
 import pickle
 import time
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
@@ -86,6 +88,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30, help="latency repeats")
     parser.add_argument("--cache", type=Path, default=None, help="folder to keep the rendered scenes in")
     parser.add_argument("--skip-model", action="store_true")
+    parser.add_argument("--skip-unrefined", action="store_true", help="no rows for the model without mask refinement")
     parser.add_argument("--skip-depth", action="store_true")
     args = parser.parse_args()
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()[0]:.1f} (timings are inflated when loaded)")
@@ -94,8 +97,12 @@ def main() -> None:
     }
     if not args.skip_model:
         model = OnnxSegmenter(args.model)
+        # the same model without the full-resolution mask refinement (masks from the upsampled prototypes only)
+        raw = OnnxSegmenter(args.model, options=replace(model.options, refine_masks=False))
         for name, samples in sets.items():
             report(f"model / {name}", evaluate(model, samples), latency(model, samples, args.repeats), True)
+            if not args.skip_unrefined:
+                report(f"model unrefined / {name}", evaluate(raw, samples), latency(raw, samples, args.repeats), True)
     if not args.skip_depth:
         depth = DepthSegmenter()
         for name, samples in sets.items():
