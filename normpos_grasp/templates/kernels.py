@@ -98,10 +98,10 @@ def build_kdtrees(samples: FloatArray, groups: list[IntArray]) -> tuple[np.ndarr
 
 
 @njit(cache=True, nogil=True)
-def _kd_nearest(q0, q1, q2, root, samples, kd, best_d2, best_i, stack_n, stack_b):  # type: ignore[no-untyped-def]
+def _kd_nearest(  # type: ignore[no-untyped-def]
+    q0, q1, q2, root, samples, dim, split, left, right, start, end, perm, best_d2, best_i, stack_n, stack_b
+):
     """Exact nearest sample of the tree at `root` to (q0, q1, q2), starting from an upper bound best_d2 / best_i."""
-    dim, split, left, right, start, end, perm, _ = kd
-    top = 0
     stack_n[0] = root
     stack_b[0] = 0.0
     top = 1
@@ -141,7 +141,7 @@ def _kd_nearest(q0, q1, q2, root, samples, kd, best_d2, best_i, stack_n, stack_b
 # -- correspondences --------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _normal_bin(n0, n1, n2):  # type: ignore[no-untyped-def]
     """Bin 0..5 of a normal: dominant axis and sign (+x, -x, +y, -y, +z, -z), as `prepared.normal_bins`."""
     a0, a1, a2 = abs(n0), abs(n1), abs(n2)
@@ -153,70 +153,94 @@ def _normal_bin(n0, n1, n2):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def _cell(v, o, cell, g):  # type: ignore[no-untyped-def]
-    f = math.floor((v - o) / cell)
-    if not (f >= 0.0):  # also NaN
-        return 0, False
-    if f >= g:
-        return g - 1, False
-    return int(f), True
+def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b, r, d, sel):  # type: ignore[no-untyped-def]
+    """Closest normal-compatible samples of object-frame points y (P, 3) with normals ny (P, 3), into
+    r (P,) point-to-plane residual, d (P,) distance (inf when none) and sel (P,) sample index.
 
-
-@njit(cache=True, nogil=True)
-def _correspond_one(y0, y1, y2, n0, n1, n2, exact, samples, normals, grid, kd, stack_n, stack_b):  # type: ignore[no-untyped-def]
-    """Closest normal-compatible sample of one object-frame point: (residual, distance (inf if none), index)."""
+    Grid mode: the grid cell's nearest sample, else (normal disagrees, cos <= 0.35) the cell's nearest sample of
+    the normal's bin; points outside the grid get none. Exact mode: the exact nearest sample (KD-tree), else the
+    exact nearest one of the normal's bin. Written as one loop (per-point helper calls cost more than the work).
+    """
     origin, cellarr, gi, gib = grid
-    g = gi.shape[0]
+    dim, split, left, right, start, end, perm, roots = kd
     cell = cellarr[0]
-    i, ini = _cell(y0, origin[0], cell, g)
-    j, inj = _cell(y1, origin[1], cell, g)
-    k, ink = _cell(y2, origin[2], cell, g)
-    inside = ini and inj and ink
-    sel = int(gi[i, j, k])
-    ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    g = gi.shape[0]
+    gf = g - 1.0
     s_last = samples.shape[0] - 1
-    if not exact:
-        if not ok:
-            b = _normal_bin(n0, n1, n2)
-            s2 = int(gib[b, i, j, k])
-            inside = inside and s2 >= 0
-            sel = s2 if s2 >= 0 else s_last
-            ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
-        e0 = y0 - samples[sel, 0]
-        e1 = y1 - samples[sel, 1]
-        e2 = y2 - samples[sel, 2]
-        d = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) if (inside and ok) else np.inf
-    else:
-        e0 = y0 - samples[sel, 0]
-        e1 = y1 - samples[sel, 1]
-        e2 = y2 - samples[sel, 2]
-        d2, sel = _kd_nearest(y0, y1, y2, kd[7][0], samples, kd, e0 * e0 + e1 * e1 + e2 * e2, sel, stack_n, stack_b)
-        ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
-        if not ok:
-            b = _normal_bin(n0, n1, n2)
-            root = kd[7][1 + b]
-            if root < 0:
-                d2 = np.inf
-                sel = 0
-            else:
+    for q in range(y.shape[0]):
+        y0, y1, y2 = y[q, 0], y[q, 1], y[q, 2]
+        n0, n1, n2 = ny[q, 0], ny[q, 1], ny[q, 2]
+        fi = math.floor((y0 - o0) / cell)
+        fj = math.floor((y1 - o1) / cell)
+        fk = math.floor((y2 - o2) / cell)
+        inside = fi >= 0.0 and fj >= 0.0 and fk >= 0.0 and fi < g and fj < g and fk < g
+        i = int(min(max(fi, 0.0), gf)) if fi == fi else 0
+        j = int(min(max(fj, 0.0), gf)) if fj == fj else 0
+        k = int(min(max(fk, 0.0), gf)) if fk == fk else 0
+        s = int(gi[i, j, k])
+        ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
+        if not exact:
+            if not ok:
+                b = _normal_bin(n0, n1, n2)
                 s2 = int(gib[b, i, j, k])
-                if s2 >= 0:
-                    e0 = y0 - samples[s2, 0]
-                    e1 = y1 - samples[s2, 1]
-                    e2 = y2 - samples[s2, 2]
-                    init = e0 * e0 + e1 * e1 + e2 * e2
+                inside = inside and s2 >= 0
+                s = s2 if s2 >= 0 else s_last
+                ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
+            e0 = y0 - samples[s, 0]
+            e1 = y1 - samples[s, 1]
+            e2 = y2 - samples[s, 2]
+            d[q] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) if (inside and ok) else np.inf
+        else:
+            e0 = y0 - samples[s, 0]
+            e1 = y1 - samples[s, 1]
+            e2 = y2 - samples[s, 2]
+            d2, s = _kd_nearest(
+                y0,
+                y1,
+                y2,
+                roots[0],
+                samples,
+                dim,
+                split,
+                left,
+                right,
+                start,
+                end,
+                perm,
+                e0 * e0 + e1 * e1 + e2 * e2,
+                s,
+                stack_n,
+                stack_b,
+            )
+            ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
+            if not ok:
+                b = _normal_bin(n0, n1, n2)
+                root = roots[1 + b]
+                if root < 0:
+                    d2 = np.inf
+                    s = 0
                 else:
-                    init = np.inf
-                    s2 = 0
-                d2, sel = _kd_nearest(y0, y1, y2, root, samples, kd, init, s2, stack_n, stack_b)
-            ok = normals[sel, 0] * n0 + normals[sel, 1] * n1 + normals[sel, 2] * n2 > NORMAL_COS
-        d = math.sqrt(d2) if ok else np.inf
-    r = (
-        (y0 - samples[sel, 0]) * normals[sel, 0]
-        + (y1 - samples[sel, 1]) * normals[sel, 1]
-        + (y2 - samples[sel, 2]) * normals[sel, 2]
-    )
-    return r, d, sel
+                    s2 = int(gib[b, i, j, k])
+                    if s2 >= 0:
+                        e0 = y0 - samples[s2, 0]
+                        e1 = y1 - samples[s2, 1]
+                        e2 = y2 - samples[s2, 2]
+                        init = e0 * e0 + e1 * e1 + e2 * e2
+                    else:
+                        init = np.inf
+                        s2 = 0
+                    d2, s = _kd_nearest(
+                        y0, y1, y2, root, samples, dim, split, left, right, start, end, perm, init, s2, stack_n, stack_b
+                    )
+                ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
+            d[q] = math.sqrt(d2) if ok else np.inf
+        sel[q] = s
+        r[q] = (
+            (y0 - samples[s, 0]) * normals[s, 0]
+            + (y1 - samples[s, 1]) * normals[s, 1]
+            + (y2 - samples[s, 2]) * normals[s, 2]
+        )
 
 
 @njit(cache=True, nogil=True)
@@ -228,11 +252,17 @@ def correspond_many(y, ny, exact, samples, normals, grid, kd):  # type: ignore[n
     idx = np.empty(p, dtype=np.int64)
     stack_n = np.empty(_STACK, dtype=np.int64)
     stack_b = np.empty(_STACK)
-    for q in range(p):
-        r[q], d[q], idx[q] = _correspond_one(
-            y[q, 0], y[q, 1], y[q, 2], ny[q, 0], ny[q, 1], ny[q, 2], exact, samples, normals, grid, kd, stack_n, stack_b
-        )
+    _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b, r, d, idx)
     return r, d, idx
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pose_points(rot, t, s, pts, nrm, y, ny):  # type: ignore[no-untyped-def]
+    """y = (R pts + t) / s and ny = R nrm, (P, 3) each, in place."""
+    for q in range(pts.shape[0]):
+        for u in range(3):
+            y[q, u] = (rot[u, 0] * pts[q, 0] + rot[u, 1] * pts[q, 1] + rot[u, 2] * pts[q, 2] + t[u]) / s
+            ny[q, u] = rot[u, 0] * nrm[q, 0] + rot[u, 1] * nrm[q, 1] + rot[u, 2] * nrm[q, 2]
 
 
 @njit(cache=True, nogil=True)
@@ -242,22 +272,14 @@ def correspond_posed(poses, scales, pts, nrm, exact, samples, normals, grid, kd)
     p = pts.shape[0]
     r = np.empty((h, p))
     d = np.empty((h, p))
+    sel = np.empty(p, dtype=np.int64)
+    y = np.empty((p, 3))
+    ny = np.empty((p, 3))
     stack_n = np.empty(_STACK, dtype=np.int64)
     stack_b = np.empty(_STACK)
     for a in range(h):
-        rot = poses[a, :3, :3]
-        t = poses[a, :3, 3]
-        s = scales[a]
-        for q in range(p):
-            y0 = (rot[0, 0] * pts[q, 0] + rot[0, 1] * pts[q, 1] + rot[0, 2] * pts[q, 2] + t[0]) / s
-            y1 = (rot[1, 0] * pts[q, 0] + rot[1, 1] * pts[q, 1] + rot[1, 2] * pts[q, 2] + t[1]) / s
-            y2 = (rot[2, 0] * pts[q, 0] + rot[2, 1] * pts[q, 1] + rot[2, 2] * pts[q, 2] + t[2]) / s
-            n0 = rot[0, 0] * nrm[q, 0] + rot[0, 1] * nrm[q, 1] + rot[0, 2] * nrm[q, 2]
-            n1 = rot[1, 0] * nrm[q, 0] + rot[1, 1] * nrm[q, 1] + rot[1, 2] * nrm[q, 2]
-            n2 = rot[2, 0] * nrm[q, 0] + rot[2, 1] * nrm[q, 1] + rot[2, 2] * nrm[q, 2]
-            r[a, q], d[a, q], _ = _correspond_one(
-                y0, y1, y2, n0, n1, n2, exact, samples, normals, grid, kd, stack_n, stack_b
-            )
+        _pose_points(poses[a, :3, :3], poses[a, :3, 3], scales[a], pts, nrm, y, ny)
+        _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b, r[a], d[a], sel)
     return r, d
 
 
@@ -361,6 +383,7 @@ def icp_run(  # type: ignore[no-untyped-def]
     for q in range(p):
         thr_min = min(thr_min, thr[q])
     y = np.empty((p, 3))
+    ny = np.empty((p, 3))
     r = np.empty(p)
     d = np.empty(p)
     sel = np.empty(p, dtype=np.int64)
@@ -381,21 +404,11 @@ def icp_run(  # type: ignore[no-untyped-def]
             t = poses[hh, :3, 3].copy()
             s = scales[hh]
             # correspondences
+            _pose_points(rot, t, s, pts, nrm, y, ny)
+            _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b, r, d, sel)
             cnt = 0
             inl = 0
             for q in range(p):
-                y0 = (rot[0, 0] * pts[q, 0] + rot[0, 1] * pts[q, 1] + rot[0, 2] * pts[q, 2] + t[0]) / s
-                y1 = (rot[1, 0] * pts[q, 0] + rot[1, 1] * pts[q, 1] + rot[1, 2] * pts[q, 2] + t[1]) / s
-                y2 = (rot[2, 0] * pts[q, 0] + rot[2, 1] * pts[q, 1] + rot[2, 2] * pts[q, 2] + t[2]) / s
-                n0 = rot[0, 0] * nrm[q, 0] + rot[0, 1] * nrm[q, 1] + rot[0, 2] * nrm[q, 2]
-                n1 = rot[1, 0] * nrm[q, 0] + rot[1, 1] * nrm[q, 1] + rot[1, 2] * nrm[q, 2]
-                n2 = rot[2, 0] * nrm[q, 0] + rot[2, 1] * nrm[q, 1] + rot[2, 2] * nrm[q, 2]
-                y[q, 0] = y0
-                y[q, 1] = y1
-                y[q, 2] = y2
-                r[q], d[q], sel[q] = _correspond_one(
-                    y0, y1, y2, n0, n1, n2, exact, samples, normals, grid, kd, stack_n, stack_b
-                )
                 if d[q] < gate:
                     absv[cnt] = abs(r[q])
                     cnt += 1
@@ -563,24 +576,94 @@ def visible_mask(pc, nc, spacing_scaled):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def window_stats(depth, uv, inside, z, rad):  # type: ignore[no-untyped-def]
-    """Per (u, v) within +-rad pixels (clipped to the image): nearest valid depth and smallest |depth - z|."""
-    n = uv.shape[0]
-    hgt, wid = depth.shape
-    nearest = np.full(n, np.inf)
-    closest = np.full(n, np.inf)
-    for i in range(n):
-        if not inside[i]:
+def fit_stats(r, d, scale, thr, spacing, beside_spacings, beside_thr, neighbours, k, floor_m):  # type: ignore[no-untyped-def]
+    """Inlier ratio, inlier RMSE (metres, inf without inliers) and consistency of (P,) residuals / distances.
+
+    As `scoring._fit_stats` / `scoring._consistency`: a point is near when d < max(3 thr / scale, 2 spacing);
+    an inlier is near, |r| scale < thr and its offset along the surface is within
+    max(beside_spacings spacing scale, beside_thr thr); consistent when near, at least k // 2 of its k
+    neighbours (rows of `neighbours` (P, k)) are near and their mean residual is within
+    max(floor_m, 3 sigma / sqrt(count)), sigma = thr / 2.5.
+    """
+    p = r.shape[0]
+    near = np.zeros(p, dtype=np.bool_)
+    n_inl = 0
+    ss = 0.0
+    for q in range(p):
+        lim = max(3.0 * thr[q] / scale, 2.0 * spacing)
+        if d[q] < lim:
+            near[q] = True
+            off2 = d[q] * d[q] - r[q] * r[q]
+            beside = math.sqrt(off2 if off2 > 0.0 else 0.0) * scale
+            if abs(r[q]) * scale < thr[q] and beside <= max(beside_spacings * spacing * scale, beside_thr * thr[q]):
+                n_inl += 1
+                ss += (r[q] * scale) ** 2
+    ratio = n_inl / p if p > 0 else 0.0
+    rmse = math.sqrt(ss / n_inl) if n_inl > 0 else np.inf
+    if p < 4:
+        return ratio, rmse, 0.0
+    n_ok = 0
+    for q in range(p):
+        if not near[q]:
             continue
+        cnt = 0
+        acc = 0.0
+        for j in range(k):
+            nb = neighbours[q, j]
+            if near[nb]:
+                cnt += 1
+                acc += r[nb] * scale
+        mean = acc / max(cnt, 1)
+        lim = max(floor_m, 3.0 * (thr[q] / 2.5) / math.sqrt(max(cnt, 1)))
+        if cnt >= k // 2 and abs(mean) <= lim:
+            n_ok += 1
+    return ratio, rmse, n_ok / p
+
+
+@njit(cache=True, nogil=True)
+def depth_evidence(pv, nv, uv, depth, tol, rad):  # type: ignore[no-untyped-def]
+    """Depth-image tests of visible template points pv (V, 3) (camera frame) with normals nv (V, 3), pixels uv (V, 2).
+
+    Returns counts (supported, inside and not occluded, violating, missing, inside and not grazing, occluded)
+    as in `scoring.evaluate`: occluded: the pixel's depth lies more than tol in front; within +-rad pixels the
+    nearest valid depth seen more than max(3 tol, 1 cm) behind the point is a free-space violation, no valid
+    depth at all is missing; supported: not occluded and some depth in the window within tol of the point.
+    Grazing points (|n . p| < 0.3 |p|) are left out of the free-space tests.
+    """
+    hgt, wid = depth.shape
+    n_sup = n_den = n_vio = n_mis = n_ng = n_occ = 0
+    see_lim = max(3.0 * tol, 0.01)
+    for i in range(pv.shape[0]):
+        u = uv[i, 0]
+        v = uv[i, 1]
+        if not (u >= 0 and u < wid and v >= 0 and v < hgt):
+            continue
+        z = pv[i, 2]
+        plen = math.sqrt(pv[i, 0] ** 2 + pv[i, 1] ** 2 + z * z)
+        grazing = abs(nv[i, 0] * pv[i, 0] + nv[i, 1] * pv[i, 1] + nv[i, 2] * z) < 0.3 * plen
+        meas = depth[v, u]
+        occluded = meas > 0 and np.isfinite(meas) and meas - z < -tol
+        nearest = np.inf
+        closest = np.inf
         for dv in range(-rad, rad + 1):
-            vv = min(max(uv[i, 1] + dv, 0), hgt - 1)
+            vv = min(max(v + dv, 0), hgt - 1)
             for du in range(-rad, rad + 1):
-                uu = min(max(uv[i, 0] + du, 0), wid - 1)
+                uu = min(max(u + du, 0), wid - 1)
                 val = depth[vv, uu]
                 if val > 0 and np.isfinite(val):
-                    if val < nearest[i]:
-                        nearest[i] = val
-                    diff = abs(val - z[i])
-                    if diff < closest[i]:
-                        closest[i] = diff
-    return nearest, closest
+                    nearest = min(nearest, val)
+                    closest = min(closest, abs(val - z))
+        if occluded:
+            n_occ += 1
+        else:
+            n_den += 1
+            if closest <= tol:
+                n_sup += 1
+        if not grazing:
+            n_ng += 1
+            if np.isfinite(nearest):
+                if nearest - z > see_lim:
+                    n_vio += 1
+            else:
+                n_mis += 1
+    return n_sup, n_den, n_vio, n_mis, n_ng, n_occ

@@ -82,7 +82,7 @@ def score_bounds(
     tol = float(np.median(thr))
     bound = np.zeros(h)
     for i in range(h):
-        ir, rmse, consistency, _ = _fit_stats(prep, r[i], d[i], float(scales[i]), pts, thr, neighbours)
+        ir, rmse, consistency = _fit_stats(prep, r[i], d[i], float(scales[i]), pts, thr, neighbours)
         bound[i] = _combine(ir, rmse, 1.0, 0.0, tol) * consistency
     return bound, r, d
 
@@ -95,18 +95,17 @@ def _fit_stats(
     pts: FloatArray,
     thr: FloatArray,
     neighbours: IntArray | None,
-) -> tuple[float, float, float, BoolArray]:
-    """Inlier ratio, inlier RMSE (metres), consistency and the inlier mask from (P,) residuals / distances."""
-    near = d < np.maximum(3.0 * thr / scale, 2.0 * prep.spacing)
-    # a point beside the template's surface (past an edge, yet in the plane of a face) is not explained by it:
-    # its offset along the surface must stay within the sampling spacing (depth noise is mostly along the normal)
-    beside = np.sqrt(np.maximum(np.where(near, d, 0.0) ** 2 - np.where(near, r, 0.0) ** 2, 0.0)) * scale
-    beside_tol = np.maximum(BESIDE_SPACINGS * prep.spacing * scale, BESIDE_THR * thr)
-    inl = near & (np.abs(r) * scale < thr) & (beside <= beside_tol)
-    inlier_ratio = float(inl.mean()) if len(inl) else 0.0
-    consistency = _consistency(pts, r * scale, near, thr, neighbours)
-    rmse = float(np.sqrt(np.mean((r[inl] * scale) ** 2))) if np.any(inl) else float("inf")
-    return inlier_ratio, rmse, consistency, inl
+) -> tuple[float, float, float]:
+    """Inlier ratio, inlier RMSE (metres, inf without inliers) and consistency from (P,) residuals / distances
+    (`kernels.fit_stats`; `neighbours` from `consistency_neighbours(pts)`, computed when None)."""
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    thr = np.ascontiguousarray(thr, dtype=np.float64)
+    nb = neighbours if neighbours is not None else consistency_neighbours(pts)
+    inlier_ratio, rmse, consistency = kernels.fit_stats(
+        r, d, float(scale), thr, prep.spacing, BESIDE_SPACINGS, BESIDE_THR, nb, nb.shape[1], SYSTEMATIC_FLOOR_M
+    )
+    return inlier_ratio, rmse, consistency
 
 
 def evaluate(
@@ -139,7 +138,7 @@ def evaluate(
         r, d, _ = correspond(prep, y, ny, exact=True)
     else:
         r, d = corr
-    inlier_ratio, rmse, consistency, _ = _fit_stats(prep, r, d, scale, pts, thr, neighbours)
+    inlier_ratio, rmse, consistency = _fit_stats(prep, r, d, scale, pts, thr, neighbours)
     tol = float(np.median(thr))
     frame_from_object = invert_pose(object_from_frame)
     if camera is not None and depth_m is not None and camera_from_frame is not None:
@@ -154,33 +153,21 @@ def evaluate(
         return PoseScore(0.0, inlier_ratio, rmse, 0.0, 1.0, 0, 0.0, consistency)
     pv = pc[visible]
     nv = (prep.normals[visible]) @ (cff @ frame_from_object)[:3, :3].T
-    grazing = np.abs(np.einsum("ij,ij->i", nv, pv)) < 0.3 * np.linalg.norm(pv, axis=1)
     if camera is not None and depth_m is not None:
-        uv = np.rint(camera.project(pv)).astype(np.int64)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-        meas = np.zeros(len(pv))
-        meas[inside] = depth_m[uv[inside, 1], uv[inside, 0]]
-        known = inside & (meas > 0) & np.isfinite(meas)
-        diff = np.where(known, meas - pv[:, 2], 0.0)
-        tol_z = np.full(len(pv), tol)
-        occluded = known & (diff < -tol_z)
+        uv = np.rint(camera.project(pv))
+        uv = np.where(np.isfinite(uv), uv, -1.0).astype(np.int64)
+        n_sup, n_den, n_vio, n_mis, n_ng, n_occ = kernels.depth_evidence(
+            pv, nv, uv, np.ascontiguousarray(depth_m, dtype=np.float64), tol, FREE_SPACE_WINDOW_PX
+        )
         # see-through test on the nearest valid depth in a small window: robust to depth edges that are
-        # misaligned by a pixel or two (stereo and Kinect depth both shift silhouettes)
-        nearest, closest = _window_stats(depth_m, uv, inside, pv[:, 2], FREE_SPACE_WINDOW_PX)
-        see_through = nearest - pv[:, 2] > np.maximum(3.0 * tol_z, 0.01)
-        violating = inside & np.isfinite(nearest) & see_through & ~grazing
-        # camera-facing template surface where the sensor returned nothing within the window: unexplained
-        # (a real part reflects; dropouts are thin), counted at half weight
-        missing = inside & ~np.isfinite(nearest) & ~grazing
-        # support: some depth within the window agrees (silhouettes of real depth shift by a pixel or two)
-        # (occluded points are out of the denominator, so they must be out of the numerator too: coverage <= 1)
-        supported = inside & ~occluded & (closest <= tol_z)
-        # pixels without a depth reading are not evidence for the template: they count as unsupported
-        denom = max(int((inside & ~occluded).sum()), 1)
-        coverage = float(supported.sum()) / denom
-        fsv = float(violating.sum() + 0.5 * missing.sum()) / max(int((inside & ~grazing).sum()), 1)
-        occ_share = float(occluded.sum()) / n_vis
+        # misaligned by a pixel or two (stereo and Kinect depth both shift silhouettes); camera-facing template
+        # surface where the sensor returned nothing within the window is unexplained (half weight); support:
+        # some depth within the window agrees; occluded points are out of numerator and denominator
+        coverage = float(n_sup) / max(n_den, 1)
+        fsv = float(n_vio + 0.5 * n_mis) / max(n_ng, 1)
+        occ_share = float(n_occ) / n_vis
     else:
+        grazing = np.abs(np.einsum("ij,ij->i", nv, pv)) < 0.3 * np.linalg.norm(pv, axis=1)
         world_v = pv @ invert_pose(cff)[:3, :3].T + invert_pose(cff)[:3, 3]
         dd, _ = meas_tree.query(world_v, distance_upper_bound=2.0 * tol + prep.spacing * scale)
         supported = np.isfinite(dd)
@@ -238,15 +225,6 @@ def _consistency(
     lim = np.maximum(SYSTEMATIC_FLOOR_M, 3.0 * sigma / np.sqrt(np.maximum(cnt, 1)))
     ok = near & (cnt >= k // 2) & (np.abs(mean) <= lim)
     return float(ok.mean())
-
-
-def _window_stats(
-    depth: FloatArray, uv: np.ndarray, inside: BoolArray, z: FloatArray, r: int
-) -> tuple[FloatArray, FloatArray]:
-    """Per (u, v) within +-r pixels: the nearest valid depth and the smallest |depth - z| (inf where none)."""
-    return kernels.window_stats(
-        np.ascontiguousarray(depth, dtype=np.float64), np.ascontiguousarray(uv, dtype=np.int64), inside, z, r
-    )
 
 
 def _cell_keys(pc: FloatArray, cell: float) -> FloatArray:
