@@ -63,6 +63,12 @@ class DepthSegmenterOptions:
         merge_max_extent_m: touching components whose shared boundary is mostly free of depth jumps are merged
             when the union is at most this long (the largest part), metres; 0 turns merging off.
         merge_max_jump_fraction: the largest fraction of boundary pixel pairs with a depth jump for a merge.
+        neck_px: components are seeded at pixels farther than this from edges and background (working pixels), so
+            that a gap in an edge line narrower than twice this does not join two parts; 0 turns it off.
+        neck_merge_max_extent_m: touching components whose boundary is free of depth jumps and creases (a neck of one
+            part) are merged when the union is at most this long, metres.
+        wall_angle_deg / max_wall_fraction: a component is dropped as a wall when more than max_wall_fraction of its
+            pixels have normals more than wall_angle_deg (degrees) from the support plane's normal; 1.0 turns it off.
         seed: RNG seed of the RANSAC (a private generator; the global RNG is untouched).
     """
 
@@ -89,6 +95,10 @@ class DepthSegmenterOptions:
     max_extent_m: float = 0.25
     merge_max_extent_m: float = 0.08
     merge_max_jump_fraction: float = 0.2
+    neck_px: float = 0.0
+    neck_merge_max_extent_m: float = 0.12
+    wall_angle_deg: float = 60.0
+    max_wall_fraction: float = 0.7
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -184,12 +194,21 @@ def _remove_rims(fg: np.ndarray, z: np.ndarray, fx: float, width_m: float, lengt
 
 
 def merge_continuous(
-    lab: np.ndarray, jump_px: np.ndarray, z: np.ndarray, fx: float, max_extent_m: float, max_jump_fraction: float
+    lab: np.ndarray,
+    jump_px: np.ndarray,
+    z: np.ndarray,
+    fx: float,
+    max_extent_m: float,
+    max_jump_fraction: float,
+    crease_px: np.ndarray | None = None,
+    clean_max_extent_m: float = 0.0,
 ) -> np.ndarray:
     """Merge touching components of the (h, w) int32 label image `lab` whose shared boundary is mostly free of
     depth jumps (a crease inside one part, like the inner corner of an L-bracket or a face cut off at a steep
     view) when the union stays within `max_extent_m` (metres, the size of the largest part); z: (h, w) depth, metres;
-    jump_px: (h, w) bool, pixels next to a depth jump; fx: focal length at this resolution, pixels. Returns a new label
+    jump_px: (h, w) bool, pixels next to a depth jump; crease_px: (h, w) bool, pixels on a concave crease: a
+    boundary free of both (a neck cut by `split_necks`) allows a union up to clean_max_extent_m (metres);
+    fx: focal length at this resolution, pixels. Returns a new label
     image (labels renumbered 1..K)."""
     n = int(lab.max())
     if n < 2:
@@ -204,8 +223,14 @@ def merge_continuous(
             m = (a != b) & (a > 0) & (b > 0)
             if m.any():
                 jump = ja[m] | jb[m]
+                if crease_px is not None:
+                    ca = crease_px[:-off] if axis == 0 else crease_px[:, :-off]
+                    cb = crease_px[off:] if axis == 0 else crease_px[:, off:]
+                    cut = jump | ca[m] | cb[m]
+                else:
+                    cut = jump
                 lo, hi = np.minimum(a[m], b[m]), np.maximum(a[m], b[m])
-                pairs.append(np.column_stack([lo, hi, jump]))
+                pairs.append(np.column_stack([lo, hi, jump, cut]))
     if not pairs:
         return lab
     pr = np.concatenate(pairs)
@@ -213,6 +238,7 @@ def merge_continuous(
     uniq, inv = np.unique(key, return_inverse=True)
     contact = np.bincount(inv)
     jumps = np.bincount(inv, weights=pr[:, 2])
+    cuts = np.bincount(inv, weights=pr[:, 3])
     parent = np.arange(n + 1)
 
     def find(i: int) -> int:
@@ -226,6 +252,8 @@ def merge_continuous(
     for k in order:
         if contact[k] < 4 or jumps[k] > max_jump_fraction * contact[k]:
             continue
+        clean = cuts[k] <= max_jump_fraction * contact[k]
+        cap = max(max_extent_m, clean_max_extent_m) if clean else max_extent_m
         i, j = find(int(uniq[k] // (n + 1))), find(int(uniq[k] % (n + 1)))
         if i == j:
             continue
@@ -240,7 +268,7 @@ def merge_continuous(
             zs.append(z[sl][ys, xs])
         allp = np.concatenate(pts).astype(np.float32)
         (_, _), (rw, rh), _ = cv2.minAreaRect(allp)
-        if max(rw, rh) * float(np.median(np.concatenate(zs))) / fx <= max_extent_m:
+        if max(rw, rh) * float(np.median(np.concatenate(zs))) / fx <= cap:
             parent[j] = i
     roots = np.array([find(c) for c in range(n + 1)])
     roots[0] = 0
@@ -269,6 +297,36 @@ def fill_enclosed_holes(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
     fill[border] = 0
     fill[0] = 0
     return np.where(valid, lab, fill[cc]).astype(np.int32)
+
+
+def split_necks(core: np.ndarray, radius_px: float) -> np.ndarray:
+    """(h, w) int32 labels of the `core` (h, w) bool pixels: seeds are the pixels farther than `radius_px` from the
+    non-core pixels, one label per connected seed, grown back over the core within each core component (a gap in an
+    edge line narrower than twice the radius no longer joins two parts); core components without a seed keep a label
+    of their own."""
+    core8 = core.astype(np.uint8)
+    ncore, cc0 = cv2.connectedComponents(core8, connectivity=4)
+    dist = cv2.distanceTransform(core8, cv2.DIST_L2, 3)
+    seed_mask = dist > radius_px
+    nseed, seeds = cv2.connectedComponents(seed_mask.astype(np.uint8), connectivity=4)
+    if nseed <= 1:
+        return cc0.astype(np.int32)
+    # the nearest seed pixel of every pixel; taken where that seed lies in the pixel's own core component
+    _, nearest = cv2.distanceTransformWithLabels(
+        (~seed_mask).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
+    ys, xs = np.nonzero(seed_mask)
+    seed_of = np.zeros(int(nearest.max()) + 1, np.int32)
+    seed_of[nearest[ys, xs]] = seeds[ys, xs]
+    comp_of_seed = np.zeros(nseed, np.int32)
+    comp_of_seed[seeds[ys, xs]] = cc0[ys, xs]
+    near = seed_of[nearest]
+    lab = np.where(core & (comp_of_seed[near] == cc0), near, 0).astype(np.int32)
+    rest = core & (lab == 0)
+    if rest.any():
+        _, rlab = cv2.connectedComponents(rest.astype(np.uint8), connectivity=4)
+        lab = np.where(rest, rlab + (nseed - 1), lab).astype(np.int32)
+    return lab
 
 
 def _normals(
@@ -331,8 +389,9 @@ class DepthSegmenter:
         ny: np.ndarray,
         nz: np.ndarray,
         fx: float,
-    ) -> np.ndarray:
-        """(h, w) bool: valid pixels off the support planes. The first (dominant) plane is removed with everything
+    ) -> tuple[np.ndarray, FloatArray]:
+        """(h, w) bool: valid pixels off the support planes, and the first plane's unit normal (3,). The first
+        (dominant) plane is removed with everything
         behind it; further planes parallel or perpendicular to it only in connected inlier regions of at least
         min_plane_area_m2. Planes are fitted on every second working pixel and applied to all."""
         o = self.options
@@ -379,7 +438,32 @@ class DepthSegmenter:
                 break
             removed |= big[cc]
             removed_sub = removed.reshape(-1)[sidx]
-        return ~removed
+        return ~removed, n1
+
+    def _part_like(
+        self, lab: np.ndarray, zm: np.ndarray, fx: float, min_px: int, upright: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(lab.max() + 1,) bool: labels of `lab` (h, w) that may be parts: at least `min_px` pixels, at most
+        max_extent_m long, not thin and long (a wall rim or rail); zm: depth, metres; fx: focal length, pixels."""
+        o = self.options
+        ok = np.zeros(int(lab.max()) + 1, bool)
+        for comp0, sl in enumerate(ndimage.find_objects(lab)):
+            if sl is None:
+                continue
+            ys, xs = np.nonzero(lab[sl] == comp0 + 1)
+            if len(ys) < min_px:
+                continue
+            m_per_px = float(np.median(zm[sl][ys, xs])) / fx
+            (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
+            short, long_ = sorted((rw * m_per_px, rh * m_per_px))
+            ok[comp0 + 1] = not (
+                long_ > o.max_extent_m
+                or (short < o.rim_width_m and long_ > max(o.rim_length_m, o.rim_elongation * short))
+            )
+            if upright is not None and ok[comp0 + 1]:
+                # a piece made of faces standing upright on the support plane is a wall, not a part
+                ok[comp0 + 1] = np.count_nonzero(upright[sl][ys, xs]) < o.max_wall_fraction * len(ys)
+        return ok
 
     def label_image(self, frame: RGBDFrame) -> tuple[np.ndarray, int]:
         """(H, W) int32 label image at frame resolution (0 = background) and the number of labels."""
@@ -415,7 +499,7 @@ class DepthSegmenter:
         xb, yb = uu[None, :] * zb, vv[:, None] * zb
 
         # 2. support planes
-        fg = self._foreground(zm, valid, xs_m, ys_m, nx, ny, nz, fx)
+        fg, support_n = self._foreground(zm, valid, xs_m, ys_m, nx, ny, nz, fx)
         if o.rim_open_m > 0 and fg.any():
             fg = _remove_rims(fg, zm, fx, o.rim_open_m, o.rim_length_m)
 
@@ -451,12 +535,22 @@ class DepthSegmenter:
                     else (slice(None), slice(off, off + crease.shape[1]))
                 )
                 edge[m] |= crease
+        crease_px = edge.copy()
         edge |= jump_px
         core = fg & ~edge
 
         # 4. components
-        count, lab, stats, _ = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=4)
         min_px = max(1, int(np.ceil(o.min_pixels / (s * s) * 0.5)))
+        if o.neck_px > 0:
+            # static structure (walls, rims, rails) is recognised whole, before it is cut into pieces at necks
+            _, cc0 = cv2.connectedComponents(core.astype(np.uint8), connectivity=4)
+            core &= self._part_like(cc0, zm, fx, 1)[cc0]
+            lab = split_necks(core, o.neck_px)
+            count = int(lab.max()) + 1
+            stats = np.zeros((count, 5), np.int64)
+            stats[:, cv2.CC_STAT_AREA] = np.bincount(lab.reshape(-1), minlength=count)
+        else:
+            count, lab, stats, _ = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=4)
         keep = np.zeros(count, bool)
         keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_px
         lab = np.where(keep[lab], lab, 0).astype(np.int32)
@@ -472,27 +566,24 @@ class DepthSegmenter:
         lab[grow] = pix_label[nearest[grow]]
 
         if o.merge_max_extent_m > 0:
-            lab = merge_continuous(lab, jump_px, zm, fx, o.merge_max_extent_m, o.merge_max_jump_fraction)
+            lab = merge_continuous(
+                lab,
+                jump_px,
+                zm,
+                fx,
+                o.merge_max_extent_m,
+                o.merge_max_jump_fraction,
+                crease_px,
+                o.neck_merge_max_extent_m,
+            )
 
         # size / shape filters in metres
+        cos_up = np.float32(np.cos(np.radians(o.wall_angle_deg)))
+        upright = np.abs(nx * np.float32(support_n[0]) + ny * np.float32(support_n[1]) + nz * np.float32(support_n[2]))
+        keep_ids = np.flatnonzero(self._part_like(lab, zm, fx, min_px, upright < cos_up))
         final = np.zeros(int(lab.max()) + 1, np.int32)
-        next_id = 0
-        for comp0, sl in enumerate(ndimage.find_objects(lab)):
-            if sl is None:
-                continue
-            ys, xs = np.nonzero(lab[sl] == comp0 + 1)
-            if len(ys) < min_px:
-                continue
-            zmed = float(np.median(zm[sl][ys, xs]))
-            m_per_px = zmed / fx
-            (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
-            short, long_ = sorted((rw * m_per_px, rh * m_per_px))
-            if long_ > o.max_extent_m or (
-                short < o.rim_width_m and long_ > max(o.rim_length_m, o.rim_elongation * short)
-            ):
-                continue
-            next_id += 1
-            final[comp0 + 1] = next_id
+        final[keep_ids] = np.arange(1, len(keep_ids) + 1, dtype=np.int32)
+        next_id = len(keep_ids)
         lab = final[lab]
         if next_id == 0:
             return np.zeros((h0, w0), np.int32), 0
