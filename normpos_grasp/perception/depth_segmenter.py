@@ -564,6 +564,17 @@ class DepthSegmenter:
         pix_label[nearest[ys, xs]] = lab[ys, xs]
         grow = fg & (lab == 0) & (dist <= 3.0)
         lab[grow] = pix_label[nearest[grow]]
+        # foreground left over (all edge: a thin steep leg, a grazing face) becomes components of its own, for the
+        # merge to join to a neighbour across a boundary without depth jumps
+        left = fg & (lab == 0)
+        if left.any():
+            nleft, llab, lstats, _ = cv2.connectedComponentsWithStats(left.astype(np.uint8), connectivity=8)
+            big = np.zeros(nleft, bool)
+            big[1:] = lstats[1:, cv2.CC_STAT_AREA] >= min_px
+            if big.any():
+                ids = np.zeros(nleft, np.int32)
+                ids[big] = np.arange(1, int(big.sum()) + 1, dtype=np.int32) + int(lab.max())
+                lab = np.where(left, ids[llab], lab).astype(np.int32)
 
         if o.merge_max_extent_m > 0:
             lab = merge_continuous(
