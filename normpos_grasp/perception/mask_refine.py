@@ -121,14 +121,15 @@ def _continuing_label(
     labels: np.ndarray, depth: np.ndarray, ys: np.ndarray, xs: np.ndarray, options: MaskRefineOptions
 ) -> np.ndarray:
     """For the pixels (ys, xs): the label (> 0) of a 4-neighbour whose depth differs by at most the step, else 0."""
-    h, w = labels.shape
     z = depth[ys, xs]
     step = options.edge_step_m + options.edge_step_per_m2 * z * z
+    lab_p = np.pad(labels, 1)  # 0 (no region) outside the window
+    dep_p = np.pad(depth, 1)
     out = np.zeros(len(ys), labels.dtype)
     for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        ny, nx = np.clip(ys + dy, 0, h - 1), np.clip(xs + dx, 0, w - 1)
-        lab = labels[ny, nx]
-        ok = (out == 0) & (lab > 0) & (np.abs(depth[ny, nx] - z) <= step)
+        ny, nx = ys + (1 + dy), xs + (1 + dx)
+        lab = lab_p[ny, nx]
+        ok = (out == 0) & (lab > 0) & (np.abs(dep_p[ny, nx] - z) <= step)
         out[ok] = lab[ok]
     return out
 
@@ -155,28 +156,25 @@ def _colour_vote(
     """`keep` with the undecided pixels reassigned to the nearer (RGB distance) of the local mean colours of the
     sure-inside and sure-outside pixels within a `size` x `size` neighbourhood (the window's mean colour of a side
     where none of its pixels is that near); pixels where a side is missing altogether keep their value."""
-    h, w = sure_in.shape
-    stack = np.zeros((h, w, 8), np.float32)
-    stack[..., 0] = sure_in
-    stack[..., 1] = sure_out
-    stack[..., 2:5][sure_in] = rgb[sure_in]
-    stack[..., 5:8][sure_out] = rgb[sure_out]
-    box = cv2.boxFilter(stack, -1, (size, size), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    k = (size, size)
     ys, xs = np.nonzero(undecided)
-    sums = box[ys, xs].astype(np.float64)
-    # where one side has no sure pixel nearby (wide holes), its mean colour over the whole window stands in
-    for cnt, cols, side in ((0, slice(2, 5), sure_in), (1, slice(5, 8), sure_out)):
-        lack = sums[:, cnt] < 0.5
-        if lack.any():
-            sums[lack, cnt] = np.count_nonzero(side)
-            sums[lack, cols] = rgb[side].sum(0, dtype=np.float64)
-    ok = (sums[:, 0] > 0.5) & (sums[:, 1] > 0.5)
+    d = []
+    for side in (sure_in, sure_out):
+        m8 = side.view(np.uint8) if side.dtype == np.bool_ else side.astype(np.uint8)
+        col = cv2.bitwise_and(rgb, rgb, mask=m8)
+        cnt = cv2.boxFilter(m8, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)[ys, xs]
+        tot = cv2.boxFilter(col, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)[ys, xs]
+        lack = cnt < 0.5
+        if lack.any():  # no sure pixel of this side nearby (wide holes): its mean over the window stands in
+            cnt[lack] = cv2.countNonZero(m8)
+            tot[lack] = cv2.sumElems(col)[:3]
+        mean = tot / np.maximum(cnt, 1.0)[:, None]
+        d.append(np.where(cnt > 0.5, ((mean - rgb[ys, xs]) ** 2).sum(1), np.nan))
+    d_in, d_out = d
+    ok = np.isfinite(d_in) & np.isfinite(d_out)
     if not ok.any():
         return keep
-    sums, ys, xs = sums[ok], ys[ok], xs[ok]
-    cc = rgb[ys, xs].astype(np.float64)
-    d_in = ((cc - sums[:, 2:5] / sums[:, :1]) ** 2).sum(1)
-    d_out = ((cc - sums[:, 5:8] / sums[:, 1:2]) ** 2).sum(1)
+    ys, xs, d_in, d_out = ys[ok], xs[ok], d_in[ok], d_out[ok]
     out = keep.copy()
     out[ys, xs] = d_in < d_out
     return out
