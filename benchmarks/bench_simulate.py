@@ -1,12 +1,14 @@
 """Benchmark of offline grasp simulation: physics validations per minute, and whole-pipeline picks per minute.
 
-    .venv/bin/python benchmarks/bench_simulate.py [--repeats 5] [--episodes 0] [--cell examples/cells/...yaml]
+    .venv/bin/python benchmarks/bench_simulate.py [--repeats 5] [--episodes 0] [--count 8] [--seed 0] [--skip-physics]
+        [--segmenter gt] [--cell examples/cells/...yaml]
 
 Physics: every default part lies on a table with four neighbours around it and is picked top-down, centred,
 across its narrowest horizontal side (2F-85) and, where its top is flat, with the suction cup; the median wall
 time of `validate_grasp` per part (decomposition cached, as in a batch) gives validations per minute.
-Episodes: with --episodes N, N bin-clearing scenes of the example cell run through `run_batch` (render, segment,
-measure, fit, plan, physics) and the figure is attempted picks per minute of wall time.
+Episodes: with --episodes N, N bin-clearing scenes of the example cell run one after another in this process
+(render, segment, measure, fit, plan, physics; as in one batch worker) and the figures are CPU seconds per scene,
+attempted picks per CPU-minute and the projected time of a 100-scene run with one or two free cores.
 """
 
 from __future__ import annotations
@@ -103,35 +105,55 @@ def bench_physics(repeats: int) -> None:
     )
 
 
-def bench_episodes(cell: str, n: int, count: int) -> None:
-    from normpos_grasp.simulate.batch import run_batch, timing_summary
-    from normpos_grasp.simulate.episode import SimulationConfig
+def bench_episodes(cell: str, n: int, count: int, seed: int, segmenter: str) -> None:
+    """Scenes run in this process (one after the other, as in one batch worker): CPU time per scene and per
+    stage, so that the figure holds on a shared machine; the first scene also pays the per-process setup."""
+    from normpos_grasp.simulate.episode import SimulationConfig, run_scene
 
-    config = SimulationConfig(cell_path=cell, parts_per_scene=count, seed=0)
-    t0 = time.perf_counter()
-    result = run_batch(config, n)
-    wall = time.perf_counter() - t0
-    timing = timing_summary(result, wall)
-    ok = sum(p.success for p in result.picks)
+    config = SimulationConfig(cell_path=cell, parts_per_scene=count, seed=seed, segmenter=segmenter)
+    cpu, wall, picks, held = [], [], 0, 0
+    pipeline_ms: list[float] = []
+    physics_ms: list[float] = []
+    for i in range(n):
+        c0, t0 = time.process_time(), time.perf_counter()
+        scene = run_scene(config, i)
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - t0)
+        picks += len(scene.picks)
+        held += sum(p.success for p in scene.picks)
+        pipeline_ms += [p.pipeline_ms for p in scene.picks]
+        physics_ms += [p.physics_ms for p in scene.picks if p.physics]
+        print(f"  scene {i}: {len(scene.picks)} picks, CPU {cpu[-1]:.1f} s, wall {wall[-1]:.1f} s")
+    steady = cpu[1:] if n > 1 else cpu
+    per_scene = statistics.median(steady)
+    picks_per_scene = picks / n
     print(
-        f"episodes: {n} scenes x {count} parts, {timing['picks']} picks ({ok} held) in {wall:.1f} s -> "
-        f"{timing['picks_per_minute']:.1f} picks/min; median pipeline {timing['pipeline_ms_median']:.0f} ms, "
-        f"physics {timing['physics_ms_median']:.0f} ms per pick"
+        f"episodes: {n} scenes x {count} parts ({segmenter}), {picks} picks ({held} held); CPU {sum(cpu):.1f} s "
+        f"(first scene {cpu[0]:.1f} s with the per-process setup), median {per_scene:.1f} s per later scene -> "
+        f"{60.0 * picks_per_scene / per_scene:.1f} picks per CPU-minute; median wall per pick: pipeline "
+        f"{statistics.median(pipeline_ms):.0f} ms, physics {statistics.median(physics_ms):.0f} ms"
     )
+    for workers in (1, 2):
+        est = (cpu[0] + per_scene * (100 / workers - 1)) / 60.0
+        print(f"projected 100 scenes with --workers {workers} and {workers} free core(s): {est:.1f} min")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--episodes", type=int, default=0, help="bin-clearing scenes through the whole pipeline")
-    parser.add_argument("--count", type=int, default=6, help="parts per episode scene")
+    parser.add_argument("--count", type=int, default=8, help="parts per episode scene")
+    parser.add_argument("--seed", type=int, default=0, help="batch seed of the episode scenes")
+    parser.add_argument("--segmenter", default="gt", choices=("gt", "depth"))
+    parser.add_argument("--skip-physics", action="store_true", help="episodes only")
     parser.add_argument(
         "--cell", default=str(Path(__file__).resolve().parents[1] / "examples/cells/ur5e_bin_parallel.yaml")
     )
     args = parser.parse_args()
-    bench_physics(args.repeats)
+    if not args.skip_physics:
+        bench_physics(args.repeats)
     if args.episodes > 0:
-        bench_episodes(args.cell, args.episodes, args.count)
+        bench_episodes(args.cell, args.episodes, args.count, args.seed, args.segmenter)
 
 
 if __name__ == "__main__":

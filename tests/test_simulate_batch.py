@@ -11,7 +11,7 @@ import pytest
 
 from normpos_grasp.errors import InputError, MissingDependency
 from normpos_grasp.simulate.batch import CSV_COLUMNS, BatchResult, run_batch, summarise, write_results
-from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, scene_seed
+from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, _changed, scene_seed
 from normpos_grasp.simulate.plots import bar_chart
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,6 +35,9 @@ def _pick(scene: int, pick: int, success: bool, cause: str = "", part: str = "cu
         0.0005,
         0.2,
         3,
+        1,
+        2,
+        1,
         123.0,
         456.0,
     )
@@ -44,7 +47,8 @@ def _batch() -> BatchResult:
     picks_a = (_pick(0, 0, True), _pick(0, 1, False, "physics_drop", "sphere", 0.05), _pick(0, 2, True, part="ring"))
     picks_b = (_pick(1, 0, False, "no_feasible_grasp", "", float("nan")),)
     return BatchResult(
-        SimulationConfig(cell_path=str(CELL)), (SceneResult(0, 3, False, picks_a), SceneResult(1, 2, False, picks_b))
+        SimulationConfig(cell_path=str(CELL)),
+        (SceneResult(0, 3, False, picks_a, 1), SceneResult(1, 2, False, picks_b, 2)),
     )
 
 
@@ -56,6 +60,7 @@ def test_summary_counts_and_causes() -> None:
     assert s["failures_by_cause"]["physics_drop"] == 1 and s["failures_by_cause"]["no_feasible_grasp"] == 1
     assert s["by_part"]["sphere"] == {"attempted": 1, "succeeded": 0}
     assert s["parts_total"] == 5
+    assert s["parts_picked"] == 2 and s["parts_left_in_bin"] == 3
 
 
 def test_written_files_are_deterministic(tmp_path: Path) -> None:
@@ -90,9 +95,25 @@ def test_scene_seeds_differ_and_repeat() -> None:
     assert seeds == [scene_seed(7, i) for i in range(20)]
 
 
+def test_change_detection_keeps_only_unchanged_instances() -> None:
+    rng = np.random.default_rng(3)
+    mask = np.zeros((60, 80), dtype=bool)
+    mask[20:40, 30:60] = True
+    old = 0.8 + rng.normal(0.0, 0.003, mask.shape)
+    new = 0.8 + rng.normal(0.0, 0.003, mask.shape)  # the same surface, fresh noise (D435-like sigma at 0.8 m)
+    assert not _changed(mask, new, mask, old, 0.0015)
+    assert _changed(mask, new - 0.003, mask, old, 0.0015)  # lifted by 3 mm
+    tilted = new.copy()
+    tilted[20:40, 45:60] -= 0.004  # one half raised by 4 mm, the other not (the part tipped)
+    assert _changed(mask, tilted, mask, old, 0.0015)
+    assert _changed(mask, new, np.zeros_like(mask), old, 0.0015)  # no overlap: no evidence
+
+
 def test_bad_arguments() -> None:
     with pytest.raises(InputError):
         SimulationConfig(cell_path=str(CELL), segmenter="magic")
+    with pytest.raises(InputError):
+        SimulationConfig(cell_path=str(CELL), perception_retries=-1)
     with pytest.raises(InputError):
         run_batch(SimulationConfig(cell_path=str(CELL)), 0)
     with pytest.raises(InputError):

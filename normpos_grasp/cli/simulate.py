@@ -41,6 +41,23 @@ def register(subparsers: Any) -> None:
         metavar="ADDRESS",
         help="run scenes as Ray tasks: 'auto', 'local' (start one here) or a cluster address",
     )
+    parser.add_argument(
+        "--retries",
+        type=int,
+        default=1,
+        help="fresh captures (everything fitted anew) before a 'no feasible grasp' ends a scene",
+    )
+    parser.add_argument(
+        "--no-reuse-fits",
+        action="store_true",
+        help="fit every instance of every frame (default: keep the fits of instances the change detection finds "
+        "unchanged since the previous frame)",
+    )
+    parser.add_argument(
+        "--no-pick-unmatched",
+        action="store_true",
+        help="leave objects whose template fit was rejected as clutter (default: pick them by their measured box)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.set_defaults(handler=run)
 
@@ -63,6 +80,9 @@ def run(args: argparse.Namespace) -> int:
         renderer=args.renderer,
         gripper=args.gripper,
         resolution=parse_resolution(args.resolution),
+        perception_retries=args.retries,
+        reuse_fits=not args.no_reuse_fits,
+        pick_unmatched=not args.no_pick_unmatched,
     )
     bar = tqdm(total=args.scenes, unit="scene", disable=args.no_progress)
 

@@ -55,6 +55,9 @@ CSV_COLUMNS = (
     "slip_m",
     "lift_m",
     "parts_left",
+    "captures",
+    "fitted",
+    "reused",
 )
 
 
@@ -178,6 +181,8 @@ def summarise(result: BatchResult) -> dict[str, Any]:
         "scenes": len(result.scenes),
         "parts_total": sum(s.n_parts for s in result.scenes),
         "scenes_cleared": sum(1 for s in result.scenes if s.cleared),
+        "parts_picked": succeeded,
+        "parts_left_in_bin": sum(s.parts_left for s in result.scenes),
         "picks_attempted": attempted,
         "picks_succeeded": succeeded,
         "success_rate": round(succeeded / attempted, 6) if attempted else 0.0,

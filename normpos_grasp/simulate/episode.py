@@ -47,6 +47,14 @@ class SimulationConfig:
     match_iou: an instance matches a true part at this mask IoU. wrong_fit_m: a fitted pose whose model points
     lie this far (mean, symmetric closest point) from the true ones counts as a wrong fit, metres.
     max_consecutive_failures: an episode stops after this many failed picks in a row.
+    pick_unmatched: objects whose template fit was rejected are still offered to the planner as boxes / plates
+    from their measured oriented box (`PlanOptions.pick_unmatched`); off, they are clutter only.
+    reuse_fits: an instance whose mask and depth did not change since the previous frame of the scene (change
+    detection on the new frame, see `reuse_iou` / `reuse_depth_m`) keeps its accepted fit instead of being fitted
+    again. reuse_iou: mask IoU with the previous instance needed; reuse_depth_m: largest median depth change over
+    the mask and over each of its halves, metres.
+    perception_retries: when the planner finds no feasible grasp, the cell captures this many fresh frames (new
+    sensor noise, everything fitted anew) before it gives up on the scene with a 'no_feasible_grasp' failure.
     clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
     gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
     resolution: (W, H) image size, pixels. physics: physics options.
@@ -62,6 +70,11 @@ class SimulationConfig:
     match_iou: float = 0.5
     wrong_fit_m: float = 0.005
     max_consecutive_failures: int = 3
+    pick_unmatched: bool = True
+    reuse_fits: bool = True
+    reuse_iou: float = 0.95
+    reuse_depth_m: float = 0.0015
+    perception_retries: int = 1
     clutter: float = 0.3
     stack_layers: int = 2
     gripper: str = ""
@@ -73,6 +86,12 @@ class SimulationConfig:
             raise InputError(f"segmenter must be one of {SEGMENTERS}, got {self.segmenter!r}")
         if self.parts_per_scene < 1:
             raise InputError(f"parts_per_scene must be >= 1, got {self.parts_per_scene}")
+        if self.perception_retries < 0:
+            raise InputError(f"perception_retries must be >= 0, got {self.perception_retries}")
+        if not 0.0 < self.reuse_iou <= 1.0 or not self.reuse_depth_m > 0.0:
+            raise InputError(
+                f"reuse_iou must be in (0, 1] and reuse_depth_m > 0, got {self.reuse_iou}, {self.reuse_depth_m}"
+            )
         object.__setattr__(self, "parts", tuple(self.parts))
 
 
@@ -82,7 +101,9 @@ class PickRecord:
     part: true part name picked ('' when the grasp matched none); template: fitted template name.
     depth_m: height of the part's centre above the bin floor; occlusion: 1 - visible share of its silhouette.
     fit_error_m: mean symmetric closest-point distance of the fitted vs true model points (nan when unknown).
-    physics: physics outcome ('' when not simulated). Times in milliseconds."""
+    physics: physics outcome ('' when not simulated). captures: frames captured for this pick (1 + perception
+    retries used); fitted / reused: instances fitted anew / whose previous fit was kept (change detection).
+    Times in milliseconds."""
 
     scene: int
     pick: int
@@ -99,6 +120,9 @@ class PickRecord:
     slip_m: float
     lift_m: float
     parts_left: int
+    captures: int
+    fitted: int
+    reused: int
     pipeline_ms: float
     physics_ms: float
 
@@ -111,12 +135,14 @@ class PickRecord:
 
 @dataclass(frozen=True)
 class SceneResult:
-    """All picks of one scene; n_parts: parts in the scene at the start; cleared: bin empty at the end."""
+    """All picks of one scene; n_parts: parts in the scene at the start; cleared: bin empty at the end;
+    parts_left: parts still in the bin at the end (parts knocked out of the bin are neither picked nor left)."""
 
     scene: int
     n_parts: int
     cleared: bool
     picks: tuple[PickRecord, ...]
+    parts_left: int = 0
 
 
 def scene_seed(seed: int, scene_index: int) -> int:
@@ -164,27 +190,150 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
     return inter / float(np.count_nonzero(a | b))
 
 
-def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
-    """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
+@dataclass(frozen=True, eq=False)
+class _Setup:
+    """What every scene of a batch shares in one process (built once: the library's templates keep their prepared
+    fitting data, grasp synthesis and convex decompositions, which are cached by template identity)."""
+
+    cell: Any
+    library: tuple[Template, ...]
+    spec: GripperSpec
+    sensor: Any
+    camera: Any
+    samples: dict[str, FloatArray]
+
+
+_SETUPS: dict[tuple[Any, ...], _Setup] = {}
+
+
+def _setup(config: SimulationConfig) -> _Setup:
     from normpos_grasp.cell.config import load_cell
-    from normpos_grasp.measure.measure import MeasureOptions, measure_instances
-    from normpos_grasp.planning.plan import plan_pick
     from normpos_grasp.sim.cameras import camera_intrinsics
-    from normpos_grasp.sim.dataset import render_frame
     from normpos_grasp.sim.parts import default_part_library
-    from normpos_grasp.sim.render import make_renderer
-    from normpos_grasp.sim.scene import SceneOptions, compose_scene
     from normpos_grasp.sim.sensor import sensor_preset
+
+    path = Path(config.cell_path).resolve()
+    key = (str(path), path.stat().st_mtime_ns if path.exists() else 0, config.gripper, config.sensor, config.resolution)
+    hit = _SETUPS.get(key)
+    if hit is not None:
+        return hit
+    cell = load_cell(path)
+    _world_from_bin(cell)
+    if cell.world_from_camera is None:
+        raise InputError(f"cell {cell.name!r} has no camera pose; simulate renders through the cell's camera")
+    library = tuple(default_part_library())
+    camera = camera_intrinsics(config.sensor, config.resolution).with_extrinsics(cell.world_from_camera)
+    setup = _Setup(
+        cell=cell,
+        library=library,
+        spec=_gripper_spec(cell, config.gripper),
+        sensor=sensor_preset(config.sensor),
+        camera=camera,
+        samples={t.name: _model_points(t) for t in library},
+    )
+    _SETUPS[key] = setup
+    return setup
+
+
+@dataclass(frozen=True, eq=False)
+class _Perception:
+    """One captured frame and what the pipeline made of it."""
+
+    frame: Any
+    instances: list[Any]
+    normpositions: list[Any]
+    fits: list[Any]
+    fitted: int
+    reused: int
+
+
+def _changed(mask: np.ndarray, depth: FloatArray, old_mask: np.ndarray, old_depth: FloatArray, tol: float) -> bool:
+    """Change detection between two frames of a static camera over one instance: True unless the median depth
+    change over the overlap of both masks, and over each of its halves (left / right, top / bottom: a tilt raises
+    one half), stays within `tol` metres (medians are robust to the sensor's holes and edge outliers)."""
+    both = mask & old_mask & (depth > 0) & (old_depth > 0)
+    v, u = np.nonzero(both)
+    if len(u) < 40:
+        return True
+    diff = depth[v, u] - old_depth[v, u]
+    if abs(float(np.median(diff))) > tol:
+        return True
+    for coord in (u, v):
+        cut = np.median(coord)
+        for half in (coord < cut, coord >= cut):
+            if np.count_nonzero(half) >= 10 and abs(float(np.median(diff[half]))) > tol:
+                return True
+    return False
+
+
+def _perceive(
+    setup: _Setup,
+    config: SimulationConfig,
+    layout: Any,
+    rng: np.random.Generator,
+    scene_index: int,
+    im_id: int,
+    previous: _Perception | None,
+) -> _Perception:
+    """Render the scene as it stands with sensor noise, segment, measure and fit (keeping the accepted fits of
+    instances the change detection finds unchanged since `previous`)."""
+    from normpos_grasp.measure.measure import MeasureOptions, measure_instances
+    from normpos_grasp.sim.dataset import render_frame
+    from normpos_grasp.sim.render import make_renderer
     from normpos_grasp.templates.fit import FitContext, fit_best
 
-    cell = load_cell(Path(config.cell_path))
-    library = default_part_library()
-    spec = _gripper_spec(cell, config.gripper)
-    sensor = sensor_preset(config.sensor)
+    camera = setup.camera
+    renderer = make_renderer(layout, camera.width, camera.height, config.renderer)
+    try:
+        frame = render_frame(layout, renderer, camera, setup.sensor, rng, scene_id=scene_index, im_id=im_id)
+    finally:
+        renderer.close()
+    if config.segmenter == "gt":
+        instances = list(frame.instances)
+    else:
+        from normpos_grasp.perception.depth_segmenter import DepthSegmenter
+
+        instances = DepthSegmenter().segment(frame.frame)
+    normpositions = measure_instances(frame.frame, instances, MeasureOptions(skip_failed=True))
+    context = FitContext(frame.frame.camera, frame.frame.depth_m)
+    masks = {i.instance_id: i.mask for i in instances}
+    old: list[tuple[np.ndarray, Any]] = []
+    if previous is not None:
+        old_masks = {i.instance_id: i.mask for i in previous.instances}
+        old = [(old_masks[f.instance_id], f) for f in previous.fits if f.accepted and f.instance_id in old_masks]
+    depth = np.asarray(frame.frame.depth_m, dtype=np.float64)
+    fits = []
+    reused = 0
+    for np_ in normpositions:
+        mask = masks.get(np_.instance_id)
+        keep = None
+        if mask is not None and previous is not None:
+            for old_mask, fit in old:
+                if _iou(mask, old_mask) >= config.reuse_iou and not _changed(
+                    mask, depth, old_mask, previous.frame.frame.depth_m, config.reuse_depth_m
+                ):
+                    keep = fit
+                    break
+        if keep is not None:
+            fits.append(replace(keep, instance_id=np_.instance_id))
+            reused += 1
+        else:
+            fits.append(replace(fit_best(np_, list(setup.library), camera=context), instance_id=np_.instance_id))
+    return _Perception(frame, instances, normpositions, fits, len(fits) - reused, reused)
+
+
+def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
+    """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
+    from normpos_grasp.planning.plan import PlanOptions, plan_pick
+    from normpos_grasp.sim.scene import SceneOptions, compose_scene
+
+    setup = _setup(config)
+    cell = setup.cell
+    library = list(setup.library)
+    spec = setup.spec
     rng = np.random.default_rng(np.random.SeedSequence([int(config.seed), int(scene_index), 0xF4A]))
-    _world_from_bin(cell)
     b = cell.bin
-    if b is None:  # checked by _world_from_bin; narrows the type
+    if b is None:  # checked by _setup; narrows the type
         raise InputError("simulate needs a cell with a bin")
     options = SceneOptions(
         parts=config.parts,
@@ -204,63 +353,51 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     poses = np.array([cell_from_scene @ p for p in layout.world_from_object]).reshape(-1, 4, 4)
     statics = tuple((name, cell_from_scene @ pose, np.asarray(size)) for name, pose, size in layout.static_boxes)
     floor_z = float((cell_from_scene @ _floor_pose(layout))[2, 3])
-    camera = camera_intrinsics(config.sensor, config.resolution)
-    if cell.world_from_camera is None:
-        raise InputError(f"cell {cell.name!r} has no camera pose; simulate renders through the cell's camera")
-    camera = camera.with_extrinsics(cell.world_from_camera)
-    samples = {t.name: _model_points(t) for t in library}
+    plan_options = PlanOptions(pick_unmatched=config.pick_unmatched)
+    physics_opts = replace(config.physics, lift_to_z_m=float(cell.entry_z) + config.physics.approach_m)
+    samples = setup.samples
     n_start = len(templates)
     records: list[PickRecord] = []
     failures = 0
     pick = 0
+    im_id = 0
+    previous: _Perception | None = None
     max_picks = 3 * n_start + 3
     while templates and pick < max_picks and failures < config.max_consecutive_failures:
         t0 = time.perf_counter()
         current = replace(layout, templates=tuple(templates), world_from_object=poses, static_boxes=statics)
-        renderer = make_renderer(current, camera.width, camera.height, config.renderer)
-        try:
-            frame = render_frame(current, renderer, camera, sensor, rng, scene_id=scene_index, im_id=pick)
-        finally:
-            renderer.close()
-        if config.segmenter == "gt":
-            instances = list(frame.instances)
-        else:
-            from normpos_grasp.perception.depth_segmenter import DepthSegmenter
-
-            instances = DepthSegmenter().segment(frame.frame)
-        normpositions = measure_instances(frame.frame, instances, MeasureOptions(skip_failed=True))
-        context = FitContext(frame.frame.camera, frame.frame.depth_m)
-        fits = [replace(fit_best(np_, library, camera=context), instance_id=np_.instance_id) for np_ in normpositions]
-        plan = plan_pick(fits, normpositions, cell)
+        captures = fitted = reused = 0
+        for capture in range(config.perception_retries + 1):
+            # a retry captures a fresh frame and fits everything anew (the kept fits led to no grasp)
+            last = previous if config.reuse_fits and capture == 0 else None
+            seen = _perceive(setup, config, current, rng, scene_index, im_id, last)
+            im_id += 1
+            captures += 1
+            fitted += seen.fitted
+            reused += seen.reused
+            plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options)
+            if plan.status == "ok" and plan.chosen is not None:
+                break
+        previous = seen
+        frame, instances, fits = seen.frame, seen.instances, seen.fits
+        counts = (captures, fitted, reused)
         pipeline_ms = (time.perf_counter() - t0) * 1e3
         visib = np.asarray(frame.visib_fractions, dtype=np.float64)
         if plan.status != "ok" or plan.chosen is None:
             reason = _no_grasp_reason(plan.counts)
             if not instances:
                 cause, reason = "segmentation_miss", "the segmenter found no instance"
-            elif not any(f.accepted for f in fits):
+            elif not any(f.accepted for f in fits) and not plan.targets:
                 rejected = sorted({f.reason.split(";")[0] for f in fits if f.reason})[:2]
                 cause, reason = "wrong_fit", "no template fit accepted: " + "; ".join(rejected)
             else:
                 cause = "no_feasible_grasp"
             records.append(
                 _record(
-                    scene_index,
-                    pick,
-                    cause,
-                    "",
-                    "",
-                    "",
-                    None,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    len(templates),
-                    pipeline_ms,
-                    0.0,
-                    reason,
+                    scene_index, pick, cause, "", "", "", None, np.nan, np.nan, np.nan, len(templates), counts,
+                    pipeline_ms, 0.0, reason,
                 )
-            )
+            )  # fmt: skip
             break
         cand = plan.chosen.candidate
         target = plan.targets[cand.target]
@@ -271,22 +408,10 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         if k < 0 or ious[k] <= 0.0:
             records.append(
                 _record(
-                    scene_index,
-                    pick,
-                    "segmentation_miss",
-                    "",
-                    target.template,
-                    cand.scheme,
-                    None,
-                    np.nan,
-                    np.nan,
-                    np.nan,
-                    len(templates),
-                    pipeline_ms,
-                    0.0,
-                    "the chosen instance covers no part",
+                    scene_index, pick, "segmentation_miss", "", target.template, cand.scheme, None, np.nan, np.nan,
+                    np.nan, len(templates), counts, pipeline_ms, 0.0, "the chosen instance covers no part",
                 )
-            )
+            )  # fmt: skip
             failures += 1
             pick += 1
             continue
@@ -296,10 +421,9 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             pts = _model_points(templates[k]) if pts is None else pts
             fit_err = _fit_error(np.asarray(target.world_from_object), true_pose, pts)
         else:
-            fit_err = float("inf")  # the wrong template was fitted
+            fit_err = float("inf")  # the wrong template was fitted (or none: a primitive box of the measurement)
         neighbours = [(templates[j], poses[j]) for j in range(len(templates)) if j != k]
         t1 = time.perf_counter()
-        physics_opts = replace(config.physics, lift_to_z_m=float(cell.entry_z) + config.physics.approach_m)
         result = validate_grasp(
             templates[k],
             true_pose,
@@ -325,22 +449,10 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             cause = "physics_drop"
         records.append(
             _record(
-                scene_index,
-                pick,
-                cause,
-                templates[k].name,
-                target.template,
-                cand.scheme,
-                result,
-                depth,
-                occlusion,
-                fit_err,
-                len(templates),
-                pipeline_ms,
-                physics_ms,
-                result.reason,
+                scene_index, pick, cause, templates[k].name, target.template, cand.scheme, result, depth, occlusion,
+                fit_err, len(templates), counts, pipeline_ms, physics_ms, result.reason,
             )
-        )
+        )  # fmt: skip
         # the scene as physics left it
         others = [j for j in range(len(templates)) if j != k]
         new_poses = {j: result.world_from_neighbours_final[n] for n, j in enumerate(others)}
@@ -353,7 +465,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         templates = [templates[j] for j in keep]
         poses = np.array([new_poses[j] for j in keep]).reshape(-1, 4, 4)
         pick += 1
-    return SceneResult(scene_index, n_start, not templates, tuple(records))
+    return SceneResult(scene_index, n_start, not templates, tuple(records), len(templates))
 
 
 def _no_grasp_reason(counts: dict[str, int]) -> str:
@@ -398,6 +510,7 @@ def _record(
     occlusion: float,
     fit_err: float,
     parts_left: int,
+    counts: tuple[int, int, int],
     pipeline_ms: float,
     physics_ms: float,
     reason: str,
@@ -418,6 +531,9 @@ def _record(
         slip_m=float(result.slip_m) if result is not None else float("nan"),
         lift_m=float(result.lift_m) if result is not None else float("nan"),
         parts_left=parts_left,
+        captures=counts[0],
+        fitted=counts[1],
+        reused=counts[2],
         pipeline_ms=float(pipeline_ms),
         physics_ms=float(physics_ms),
     )
