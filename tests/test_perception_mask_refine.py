@@ -78,10 +78,26 @@ def test_overlapping_claims_go_to_the_higher_soft_score_and_masks_are_disjoint()
     m2[40:100, 60:140] = True
     p1 = np.where(m1, 0.9, 0.0).astype(np.float32)
     p2 = np.where(m2, 0.7, 0.0).astype(np.float32)
-    out = refine_masks([soft_of(p1), soft_of(p2)], depth, (H, W), MaskRefineOptions(max_hole_px=0))
+    opts = MaskRefineOptions(max_hole_px=0, min_kept_fraction=0.0)
+    out = refine_masks([soft_of(p1), soft_of(p2)], depth, (H, W), opts)
     assert not (out[0] & out[1]).any()
     assert (out[0] == m1).all()
     assert (out[1] == (m2 & ~m1)).all()
+
+
+def test_a_duplicate_that_keeps_little_of_its_mask_is_emptied() -> None:
+    depth = np.full((H, W), 0.8)
+    big = np.zeros((H, W), bool)
+    big[20:100, 20:120] = True
+    dup = np.zeros((H, W), bool)
+    dup[25:100, 25:125] = True  # mostly inside `big`: a second, weaker detection of the same part
+    p1 = np.where(big, 0.95, 0.0).astype(np.float32)
+    p2 = np.where(dup, 0.8, 0.0).astype(np.float32)
+    out = refine_masks([soft_of(p1), soft_of(p2)], depth, (H, W), MaskRefineOptions(min_kept_fraction=0.5))
+    assert (out[0] == big).all()
+    assert not out[1].any()
+    kept = refine_masks([soft_of(p1), soft_of(p2)], depth, (H, W), MaskRefineOptions(min_kept_fraction=0.0))
+    assert (kept[1] == (dup & ~big)).all()
 
 
 def test_small_holes_are_filled_large_ones_kept() -> None:
@@ -153,6 +169,8 @@ def test_bad_inputs() -> None:
         MaskRefineOptions(grow_prob=0.0)
     with pytest.raises(InputError):
         MaskRefineOptions(median_px=4)
+    with pytest.raises(InputError):
+        MaskRefineOptions(min_kept_fraction=1.5)
     with pytest.raises(InputError):
         MaskRefineOptions(edge_step_m=-1.0)
     soft = [SoftMask(np.ones((4, 4), np.float32), 0, 0)]

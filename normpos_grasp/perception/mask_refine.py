@@ -18,7 +18,8 @@ one part above another), so the mask boundary is snapped to them:
    inside and sure outside pixels around them (a `colour_px` square); without colour, the soft threshold
    `mask_prob` decides them;
 5. holes of at most `max_hole_px` pixels inside an instance are filled;
-6. overlaps: a pixel claimed by several instances goes to the one with the highest soft score there.
+6. overlaps: a pixel claimed by several instances goes to the one with the highest soft score there; an instance
+   left with less than `min_kept_fraction` of its pixels is a duplicate and is emptied.
 
 Works in each instance's window (box plus `margin_px`), vectorised with OpenCV / numpy. Without depth and
 colour this reduces to thresholding at `mask_prob` plus the hole and overlap steps.
@@ -58,6 +59,8 @@ class MaskRefineOptions:
         colour_checks_depth: colour also decides the pixels where the depth regions and the soft mask disagree
             (a region joined but the pixel's soft score is below `mask_prob`, or the reverse), as at contact lines
             of a part with the floor or with a part of nearly the same height, where depth shows no step.
+        min_kept_fraction: an instance that keeps less than this share (0..1) of the pixels it claimed after the
+            overlaps are resolved is emptied (a duplicate of higher-scoring instances; 0 = keep all).
     """
 
     edge_step_m: float = 0.002
@@ -71,6 +74,7 @@ class MaskRefineOptions:
     sure_prob: float = 0.9
     colour_px: int = 9
     colour_checks_depth: bool = True
+    min_kept_fraction: float = 0.5
 
     def __post_init__(self) -> None:
         if self.edge_step_m < 0 or self.edge_step_per_m2 < 0:
@@ -79,6 +83,8 @@ class MaskRefineOptions:
             v = getattr(self, name)
             if not 0.0 < v < 1.0:
                 raise InputError(f"{name} must lie in (0, 1), got {v}")
+        if not 0.0 <= self.min_kept_fraction <= 1.0:
+            raise InputError(f"min_kept_fraction must lie in [0, 1], got {self.min_kept_fraction}")
         if self.max_hole_px < 0 or self.margin_px < 0:
             raise InputError(f"max_hole_px and margin_px must be >= 0, got {self.max_hole_px}, {self.margin_px}")
         if self.median_px not in (1, 3, 5):
@@ -231,6 +237,7 @@ def refine_masks(
     rgb_u = None if rgb is None else np.asarray(rgb)[uy0:uy1, ux0:ux1]
     best = np.full((uy1 - uy0, ux1 - ux0), -1.0, np.float32)  # highest soft score of a claiming instance so far
     owner = np.full((uy1 - uy0, ux1 - ux0), -1, np.int32)
+    claimed = np.zeros(n, np.int64)
     for k, (ya, yb, xa, xb) in enumerate(boxes):
         if yb <= ya or xb <= xa:
             continue
@@ -272,6 +279,7 @@ def refine_masks(
                 keep = _colour_vote(rgb_u[ya:yb, xa:xb], sure_in, sure_out, undecided, keep, opts.colour_px)
         if opts.max_hole_px > 0 and keep.any():
             keep = _fill_holes(keep.astype(np.uint8), opts.max_hole_px).astype(bool)
+        claimed[k] = int(np.count_nonzero(keep))
         b, o = best[ya:yb, xa:xb], owner[ya:yb, xa:xb]
         score = np.where(keep, p, np.float32(-1.0))
         win = score > b
@@ -280,4 +288,7 @@ def refine_masks(
     for k, (ya, yb, xa, xb) in enumerate(boxes):
         if yb > ya and xb > xa:
             out[k, ya:yb, xa:xb] = owner[ya - uy0 : yb - uy0, xa - ux0 : xb - ux0] == k
+            # an instance left with a small part of what it claimed duplicates others: it goes
+            if np.count_nonzero(out[k, ya:yb, xa:xb]) < opts.min_kept_fraction * claimed[k]:
+                out[k, ya:yb, xa:xb] = False
     return out
