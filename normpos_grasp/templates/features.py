@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from normpos_grasp.templates import kernels
 from normpos_grasp.typing import FloatArray, IntArray
 
 N_BINS = 11
@@ -117,8 +118,11 @@ def ransac_hypotheses(
     if n < 3:
         return np.zeros((0, 4, 4))
     kc = min(n_candidates, len(model_pts))
-    _, cand = desc_tree.query(meas_desc, k=kc)
-    cand = np.asarray(cand).reshape(n, kc)
+    cand = kernels.nearest_rows(
+        np.ascontiguousarray(meas_desc, dtype=np.float64),
+        np.ascontiguousarray(np.asarray(desc_tree.data, dtype=np.float64).T),
+        kc,
+    )
     tri = rng.integers(0, n, size=(n_iter, 3))
     pick = rng.integers(0, kc, size=(n_iter, 3))
     mi = cand[tri, pick]

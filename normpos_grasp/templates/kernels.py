@@ -667,3 +667,35 @@ def depth_evidence(pv, nv, uv, depth, tol, rad):  # type: ignore[no-untyped-def]
             else:
                 n_mis += 1
     return n_sup, n_den, n_vio, n_mis, n_ng, n_occ
+
+
+@njit(cache=True, nogil=True)
+def nearest_rows(query, data_t, k):  # type: ignore[no-untyped-def]
+    """(N, k) indices of the k nearest columns of data_t (D, F) to each row of query (N, D), nearest first.
+
+    Brute force with a vectorisable inner loop (faster than a KD-tree in 33 dimensions for a few hundred rows);
+    equal distances keep the lower index.
+    """
+    n, dd = query.shape
+    f = data_t.shape[1]
+    k = min(k, f)
+    out = np.empty((n, k), dtype=np.int64)
+    acc = np.empty(f)
+    for i in range(n):
+        acc[:] = 0.0
+        for c in range(dd):
+            qc = query[i, c]
+            row = data_t[c]
+            for m in range(f):
+                diff = qc - row[m]
+                acc[m] += diff * diff
+        for j in range(k):
+            best = np.inf
+            bi = 0
+            for m in range(f):
+                if acc[m] < best:
+                    best = acc[m]
+                    bi = m
+            out[i, j] = bi
+            acc[bi] = np.inf
+    return out
