@@ -413,3 +413,38 @@ def test_leaning_bar_gets_a_vertical_grasp(bin_cell: CellConfig, rolled: bool) -
     assert plan.status == "ok" and plan.chosen is not None
     gt = [(bar.mesh, bar_pose), (block.mesh, block_pose)]
     assert _independent_collisions(plan, bin_cell, gt, plan.chosen.candidate.target) == []
+
+
+def test_lone_unexplained_points_are_not_clutter(bin_cell: CellConfig) -> None:
+    part = _box("box", (0.06, 0.04, 0.03))
+    pose = _on_floor(part, 0.5, 0.0)
+    top = FLOOR_Z + 0.03
+
+    def measured(extra: np.ndarray) -> NormPosition:
+        # the part's top face as measured, plus `extra` points no fit explains
+        xs, ys = np.meshgrid(np.linspace(0.475, 0.525, 12), np.linspace(-0.015, 0.015, 8))
+        pts = np.vstack([np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, top)]), extra])
+        return NormPosition(
+            "box",
+            0.9,
+            np.zeros((1, 1), bool),
+            pts,
+            np.tile([0, 0, 1.0], (len(pts), 1)),
+            np.zeros((len(pts), 2), np.int64),
+            "world",
+            np.array([0.5, 0, 1.0]),
+            1,
+            pts.mean(0),
+            pts.min(0),
+            pts.max(0),
+            OrientedBox(pts.mean(0), np.eye(3), np.ptp(pts, axis=0)),
+        )
+
+    # one flying pixel 4 cm above the part, where the jaws pass: a sensor outlier, not an obstacle
+    stray = np.array([[0.5, 0.0, top + 0.04]])
+    assert plan_pick([_fit(part, pose, 1)], [measured(stray)], bin_cell).status == "ok"
+    # a dense patch there is something real and blocks every grasp from above
+    xs, ys = np.meshgrid(np.linspace(0.47, 0.53, 10), np.linspace(-0.03, 0.03, 10))
+    patch = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, top + 0.04)])
+    plan = plan_pick([_fit(part, pose, 1)], [measured(patch)], bin_cell, _all_options())
+    assert plan.status == "no_feasible_grasp" and plan.counts.get("collision_clutter", 0) > 0

@@ -51,6 +51,9 @@ class PlanOptions:
     max_plan_attempts: ranked grasps tried for a full path before giving up.
     release_tolerance_m: over the first this-many metres of the lift the held object may graze other objects and
     clutter (fitted poses of touching parts overlap by pose noise); tool and arm are checked as always.
+    clutter_min_points: measured points no fit explains become clutter only where at least this many of them (the
+    point itself included) lie within the cell's voxel size: lone points are sensor outliers (flying pixels at
+    depth edges), not obstacles.
     """
 
     cartesian_step_m: float = 0.01
@@ -60,6 +63,7 @@ class PlanOptions:
     place_drop_m: float = 0.005
     release_tolerance_m: float = 0.01
     max_plan_attempts: int = 12
+    clutter_min_points: int = 3
     candidates: CandidateOptions = CandidateOptions()
     evaluation: EvaluationOptions = EvaluationOptions()
     motion: MotionOptions = MotionOptions()
@@ -219,9 +223,20 @@ def build_world(
             )
             templates.append(template)
             continue
+        pts = _drop_outliers(pts, cell.voxel_m, opts.clutter_min_points)
         if len(pts):
             world.add_points(f"clutter/{np_.instance_id}", pts, cell.voxel_m, "clutter")
     return world, targets, templates
+
+
+def _drop_outliers(points: FloatArray, radius_m: float, min_points: int) -> FloatArray:
+    """Points (N, 3) with at least `min_points` points (themselves included) within `radius_m`."""
+    if min_points <= 1 or len(points) == 0:
+        return points
+    from scipy.spatial import cKDTree
+
+    counts = cKDTree(points).query_ball_point(points, radius_m, return_length=True)
+    return points[np.asarray(counts) >= min_points]
 
 
 def _unexplained(points: FloatArray, targets: list[Target], tol: float) -> FloatArray:
