@@ -63,10 +63,15 @@ class DepthSegmenterOptions:
         merge_max_extent_m: touching components whose shared boundary is mostly free of depth jumps are merged
             when the union is at most this long (the largest part), metres; 0 turns merging off.
         merge_max_jump_fraction: the largest fraction of boundary pixel pairs with a depth jump for a merge.
-        neck_px: components are seeded at pixels farther than this from edges and background (working pixels), so
-            that a gap in an edge line narrower than twice this does not join two parts; 0 turns it off.
-        neck_merge_max_extent_m: touching components whose boundary is free of depth jumps and creases (a neck of one
-            part) are merged when the union is at most this long, metres.
+        neck_px: a component too long for a part is cut where it is narrower than twice this (working pixels, seeds
+            farther than this from its border grown back) and its pieces are judged one by one; 0 turns it off.
+        max_neck_border: such a piece is kept only if at most this fraction of its border touches its sibling pieces
+            (a part that leaked into a wall through a gap is mostly bordered by edges, a piece of the wall is not).
+        neck_merge_max_extent_m: touching components whose boundary is free of depth jumps and creases (noise cut
+            one part) are merged when the union is at most this long, metres.
+        max_walls: up to this many walls (planes perpendicular to the support plane, RANSAC on the pixels with
+            upright normals) are removed where pixels within wall_tolerance_m (metres, plus the noise term) of them
+            form a connected region at least wall_min_length_m long (metres, longer than any part); 0 turns it off.
         wall_angle_deg / max_wall_fraction: a component is dropped as a wall when more than max_wall_fraction of its
             pixels have normals more than wall_angle_deg (degrees) from the support plane's normal; 1.0 turns it off.
         seed: RNG seed of the RANSAC (a private generator; the global RNG is untouched).
@@ -97,6 +102,10 @@ class DepthSegmenterOptions:
     merge_max_jump_fraction: float = 0.2
     neck_px: float = 0.0
     neck_merge_max_extent_m: float = 0.12
+    max_neck_border: float = 0.25
+    max_walls: int = 4
+    wall_tolerance_m: float = 0.004
+    wall_min_length_m: float = 0.15
     wall_angle_deg: float = 60.0
     max_wall_fraction: float = 0.7
     seed: int = 0
@@ -329,6 +338,24 @@ def split_necks(core: np.ndarray, radius_px: float) -> np.ndarray:
     return lab
 
 
+def sibling_border_fraction(lab: np.ndarray) -> FloatArray:
+    """(lab.max() + 1,) fraction of each label's border pixels (4-neighbours of another value) that touch another
+    label > 0 of `lab` (h, w) int32, rather than background."""
+    n = int(lab.max()) + 1
+    pad = np.pad(lab, 1)
+    border = np.zeros(lab.shape, bool)
+    sibling = np.zeros(lab.shape, bool)
+    for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        nb = pad[dy : dy + lab.shape[0], dx : dx + lab.shape[1]]
+        diff = nb != lab
+        border |= diff
+        sibling |= diff & (nb > 0)
+    own = lab > 0
+    tot = np.bincount(lab[own & border], minlength=n).astype(np.float64)
+    sib = np.bincount(lab[own & sibling], minlength=n).astype(np.float64)
+    return np.where(tot > 0, sib / np.maximum(tot, 1.0), 0.0)
+
+
 def _normals(
     zb: np.ndarray, k: int, jump_m: float, jump_rel: float, fx: float, fy: float, uu: np.ndarray, vv: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -440,13 +467,87 @@ class DepthSegmenter:
             removed_sub = removed.reshape(-1)[sidx]
         return ~removed, n1
 
+    def _remove_walls(
+        self,
+        fg: np.ndarray,
+        zm: np.ndarray,
+        xs_m: np.ndarray,
+        ys_m: np.ndarray,
+        nx: np.ndarray,
+        ny: np.ndarray,
+        nz: np.ndarray,
+        fx: float,
+        support_n: FloatArray,
+    ) -> np.ndarray:
+        """`fg` (h, w) bool without walls: planes perpendicular to the support plane (normal `support_n` (3,)),
+        found by RANSAC among the foreground pixels whose normals are upright (more than wall_angle_deg from
+        support_n), removed where a connected region of pixels within the plane tolerance is at least
+        wall_min_length_m long (longer than any part)."""
+        o = self.options
+        rng = np.random.default_rng(o.seed + 1)
+        n1 = np.asarray(support_n, dtype=np.float64)
+        cos_up = np.float32(np.cos(np.radians(o.wall_angle_deg)))
+        up = fg & (np.abs(nx * np.float32(n1[0]) + ny * np.float32(n1[1]) + nz * np.float32(n1[2])) < cos_up)
+        tol_img = o.wall_tolerance_m + o.plane_noise_factor * 0.0026 * zm * zm
+        fg = fg.copy()
+        for _ in range(o.max_walls):
+            sel = np.zeros_like(up)
+            sel[::2, ::2] = up[::2, ::2]
+            idx = np.flatnonzero(sel)
+            if len(idx) < 50:
+                break
+            pts = np.column_stack([xs_m.reshape(-1)[idx], ys_m.reshape(-1)[idx], zm.reshape(-1)[idx]]).astype(
+                np.float64
+            )
+            tol = tol_img.reshape(-1)[idx]
+            sub = rng.integers(0, len(idx), size=min(o.ransac_samples, len(idx)))
+            pair = rng.integers(0, len(idx), size=(o.ransac_iterations, 2))
+            normals = np.cross(pts[pair[:, 1]] - pts[pair[:, 0]], n1[None, :])
+            norm = np.linalg.norm(normals, axis=1)
+            good = norm > 1e-6
+            if not good.any():
+                break
+            normals = normals[good] / norm[good, None]
+            ds = -np.sum(normals * pts[pair[good, 0]], axis=1)
+            ps = pts[sub]
+            dist = np.abs(
+                ps[:, 0:1] * normals[None, :, 0]
+                + ps[:, 1:2] * normals[None, :, 1]
+                + ps[:, 2:3] * normals[None, :, 2]
+                + ds[None, :]
+            )
+            best = int(np.argmax((dist < tol[sub, None]).sum(axis=0)))
+            n, d = normals[best], float(ds[best])
+            near = fg & (
+                np.abs(xs_m * np.float32(n[0]) + ys_m * np.float32(n[1]) + zm * np.float32(n[2]) + d) < tol_img
+            )
+            ncc, cc = cv2.connectedComponents(near.astype(np.uint8), connectivity=8)
+            removed_any = False
+            for c, sl in enumerate(ndimage.find_objects(cc), start=1):
+                if sl is None:
+                    continue
+                yy, xx = np.nonzero(cc[sl] == c)
+                if len(yy) < 20:
+                    continue
+                (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xx, yy]).astype(np.float32))
+                if max(rw, rh) * float(np.median(zm[sl][yy, xx])) / fx >= o.wall_min_length_m:
+                    region = cc[sl] == c
+                    fg[sl] &= ~region
+                    up[sl] &= ~region
+                    removed_any = True
+            if not removed_any:
+                break
+        return fg
+
     def _part_like(
         self, lab: np.ndarray, zm: np.ndarray, fx: float, min_px: int, upright: np.ndarray | None = None
-    ) -> np.ndarray:
-        """(lab.max() + 1,) bool: labels of `lab` (h, w) that may be parts: at least `min_px` pixels, at most
-        max_extent_m long, not thin and long (a wall rim or rail); zm: depth, metres; fx: focal length, pixels."""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Two (lab.max() + 1,) bool arrays over the labels of `lab` (h, w): may be a part (at least `min_px` pixels,
+        at most max_extent_m long, not thin and long like a wall rim or rail, not mostly `upright` (h, w) bool
+        pixels), and too long; zm: depth, metres; fx: focal length, pixels."""
         o = self.options
         ok = np.zeros(int(lab.max()) + 1, bool)
+        too_long = np.zeros(int(lab.max()) + 1, bool)
         for comp0, sl in enumerate(ndimage.find_objects(lab)):
             if sl is None:
                 continue
@@ -456,6 +557,7 @@ class DepthSegmenter:
             m_per_px = float(np.median(zm[sl][ys, xs])) / fx
             (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
             short, long_ = sorted((rw * m_per_px, rh * m_per_px))
+            too_long[comp0 + 1] = long_ > o.max_extent_m
             ok[comp0 + 1] = not (
                 long_ > o.max_extent_m
                 or (short < o.rim_width_m and long_ > max(o.rim_length_m, o.rim_elongation * short))
@@ -463,7 +565,7 @@ class DepthSegmenter:
             if upright is not None and ok[comp0 + 1]:
                 # a piece made of faces standing upright on the support plane is a wall, not a part
                 ok[comp0 + 1] = np.count_nonzero(upright[sl][ys, xs]) < o.max_wall_fraction * len(ys)
-        return ok
+        return ok, too_long
 
     def label_image(self, frame: RGBDFrame) -> tuple[np.ndarray, int]:
         """(H, W) int32 label image at frame resolution (0 = background) and the number of labels."""
@@ -500,6 +602,8 @@ class DepthSegmenter:
 
         # 2. support planes
         fg, support_n = self._foreground(zm, valid, xs_m, ys_m, nx, ny, nz, fx)
+        if o.max_walls > 0 and fg.any():
+            fg = self._remove_walls(fg, zm, xs_m, ys_m, nx, ny, nz, fx, support_n)
         if o.rim_open_m > 0 and fg.any():
             fg = _remove_rims(fg, zm, fx, o.rim_open_m, o.rim_length_m)
 
@@ -541,16 +645,7 @@ class DepthSegmenter:
 
         # 4. components
         min_px = max(1, int(np.ceil(o.min_pixels / (s * s) * 0.5)))
-        if o.neck_px > 0:
-            # static structure (walls, rims, rails) is recognised whole, before it is cut into pieces at necks
-            _, cc0 = cv2.connectedComponents(core.astype(np.uint8), connectivity=4)
-            core &= self._part_like(cc0, zm, fx, 1)[cc0]
-            lab = split_necks(core, o.neck_px)
-            count = int(lab.max()) + 1
-            stats = np.zeros((count, 5), np.int64)
-            stats[:, cv2.CC_STAT_AREA] = np.bincount(lab.reshape(-1), minlength=count)
-        else:
-            count, lab, stats, _ = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=4)
+        count, lab, stats, _ = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=4)
         keep = np.zeros(count, bool)
         keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_px
         lab = np.where(keep[lab], lab, 0).astype(np.int32)
@@ -591,7 +686,20 @@ class DepthSegmenter:
         # size / shape filters in metres
         cos_up = np.float32(np.cos(np.radians(o.wall_angle_deg)))
         upright = np.abs(nx * np.float32(support_n[0]) + ny * np.float32(support_n[1]) + nz * np.float32(support_n[2]))
-        keep_ids = np.flatnonzero(self._part_like(lab, zm, fx, min_px, upright < cos_up))
+        upright = upright < cos_up
+        ok, too_long = self._part_like(lab, zm, fx, min_px, upright)
+        if o.neck_px > 0 and too_long.any():
+            # a component too long for a part (parts leaking into a wall or rail, a pile joined through gaps in its
+            # edges) is cut at its necks and its pieces are judged one by one
+            big = too_long[lab]
+            pieces = split_necks(big, o.neck_px)
+            ok_p, _ = self._part_like(pieces, zm, fx, min_px, upright)
+            # a piece of a wall or table is mostly bordered by its sibling pieces, a part mostly by edges
+            ok_p &= sibling_border_fraction(pieces) <= o.max_neck_border
+            base = int(lab.max())
+            lab = np.where(big, np.where(pieces > 0, pieces + base, 0), lab).astype(np.int32)
+            ok = np.concatenate([ok, ok_p[1:]])
+        keep_ids = np.flatnonzero(ok)
         final = np.zeros(int(lab.max()) + 1, np.int32)
         final[keep_ids] = np.arange(1, len(keep_ids) + 1, dtype=np.int32)
         next_id = len(keep_ids)
