@@ -63,12 +63,6 @@ class DepthSegmenterOptions:
         merge_max_extent_m: touching components whose shared boundary is mostly free of depth jumps are merged
             when the union is at most this long (the largest part), metres; 0 turns merging off.
         merge_max_jump_fraction: the largest fraction of boundary pixel pairs with a depth jump for a merge.
-        neck_px: a component too long for a part is cut where it is narrower than twice this (working pixels, seeds
-            farther than this from its border grown back) and its pieces are judged one by one; 0 turns it off.
-        max_neck_border: such a piece is kept only if at most this fraction of its border touches its sibling pieces
-            (a part that leaked into a wall through a gap is mostly bordered by edges, a piece of the wall is not).
-        neck_merge_max_extent_m: touching components whose boundary is free of depth jumps and creases (noise cut
-            one part) are merged when the union is at most this long, metres.
         max_walls: up to this many walls (planes perpendicular to the support plane, RANSAC on the pixels with
             upright normals) are removed where pixels within wall_tolerance_m (metres, plus the noise term) of them
             form a connected region at least wall_min_length_m long (metres, longer than any part); 0 turns it off.
@@ -100,9 +94,6 @@ class DepthSegmenterOptions:
     max_extent_m: float = 0.25
     merge_max_extent_m: float = 0.08
     merge_max_jump_fraction: float = 0.2
-    neck_px: float = 0.0
-    neck_merge_max_extent_m: float = 0.12
-    max_neck_border: float = 0.25
     max_walls: int = 4
     wall_tolerance_m: float = 0.004
     wall_min_length_m: float = 0.15
@@ -209,14 +200,11 @@ def merge_continuous(
     fx: float,
     max_extent_m: float,
     max_jump_fraction: float,
-    crease_px: np.ndarray | None = None,
-    clean_max_extent_m: float = 0.0,
 ) -> np.ndarray:
     """Merge touching components of the (h, w) int32 label image `lab` whose shared boundary is mostly free of
     depth jumps (a crease inside one part, like the inner corner of an L-bracket or a face cut off at a steep
     view) when the union stays within `max_extent_m` (metres, the size of the largest part); z: (h, w) depth, metres;
-    jump_px: (h, w) bool, pixels next to a depth jump; crease_px: (h, w) bool, pixels on a concave crease: a
-    boundary free of both (a neck cut by `split_necks`) allows a union up to clean_max_extent_m (metres);
+    jump_px: (h, w) bool, pixels next to a depth jump;
     fx: focal length at this resolution, pixels. Returns a new label
     image (labels renumbered 1..K)."""
     n = int(lab.max())
@@ -232,14 +220,8 @@ def merge_continuous(
             m = (a != b) & (a > 0) & (b > 0)
             if m.any():
                 jump = ja[m] | jb[m]
-                if crease_px is not None:
-                    ca = crease_px[:-off] if axis == 0 else crease_px[:, :-off]
-                    cb = crease_px[off:] if axis == 0 else crease_px[:, off:]
-                    cut = jump | ca[m] | cb[m]
-                else:
-                    cut = jump
                 lo, hi = np.minimum(a[m], b[m]), np.maximum(a[m], b[m])
-                pairs.append(np.column_stack([lo, hi, jump, cut]))
+                pairs.append(np.column_stack([lo, hi, jump]))
     if not pairs:
         return lab
     pr = np.concatenate(pairs)
@@ -247,7 +229,6 @@ def merge_continuous(
     uniq, inv = np.unique(key, return_inverse=True)
     contact = np.bincount(inv)
     jumps = np.bincount(inv, weights=pr[:, 2])
-    cuts = np.bincount(inv, weights=pr[:, 3])
     parent = np.arange(n + 1)
 
     def find(i: int) -> int:
@@ -261,8 +242,6 @@ def merge_continuous(
     for k in order:
         if contact[k] < 4 or jumps[k] > max_jump_fraction * contact[k]:
             continue
-        clean = cuts[k] <= max_jump_fraction * contact[k]
-        cap = max(max_extent_m, clean_max_extent_m) if clean else max_extent_m
         i, j = find(int(uniq[k] // (n + 1))), find(int(uniq[k] % (n + 1)))
         if i == j:
             continue
@@ -277,7 +256,7 @@ def merge_continuous(
             zs.append(z[sl][ys, xs])
         allp = np.concatenate(pts).astype(np.float32)
         (_, _), (rw, rh), _ = cv2.minAreaRect(allp)
-        if max(rw, rh) * float(np.median(np.concatenate(zs))) / fx <= cap:
+        if max(rw, rh) * float(np.median(np.concatenate(zs))) / fx <= max_extent_m:
             parent[j] = i
     roots = np.array([find(c) for c in range(n + 1)])
     roots[0] = 0
@@ -306,54 +285,6 @@ def fill_enclosed_holes(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
     fill[border] = 0
     fill[0] = 0
     return np.where(valid, lab, fill[cc]).astype(np.int32)
-
-
-def split_necks(core: np.ndarray, radius_px: float) -> np.ndarray:
-    """(h, w) int32 labels of the `core` (h, w) bool pixels: seeds are the pixels farther than `radius_px` from the
-    non-core pixels, one label per connected seed, grown back over the core within each core component (a gap in an
-    edge line narrower than twice the radius no longer joins two parts); core components without a seed keep a label
-    of their own."""
-    core8 = core.astype(np.uint8)
-    ncore, cc0 = cv2.connectedComponents(core8, connectivity=4)
-    dist = cv2.distanceTransform(core8, cv2.DIST_L2, 3)
-    seed_mask = dist > radius_px
-    nseed, seeds = cv2.connectedComponents(seed_mask.astype(np.uint8), connectivity=4)
-    if nseed <= 1:
-        return cc0.astype(np.int32)
-    # the nearest seed pixel of every pixel; taken where that seed lies in the pixel's own core component
-    _, nearest = cv2.distanceTransformWithLabels(
-        (~seed_mask).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
-    )
-    ys, xs = np.nonzero(seed_mask)
-    seed_of = np.zeros(int(nearest.max()) + 1, np.int32)
-    seed_of[nearest[ys, xs]] = seeds[ys, xs]
-    comp_of_seed = np.zeros(nseed, np.int32)
-    comp_of_seed[seeds[ys, xs]] = cc0[ys, xs]
-    near = seed_of[nearest]
-    lab = np.where(core & (comp_of_seed[near] == cc0), near, 0).astype(np.int32)
-    rest = core & (lab == 0)
-    if rest.any():
-        _, rlab = cv2.connectedComponents(rest.astype(np.uint8), connectivity=4)
-        lab = np.where(rest, rlab + (nseed - 1), lab).astype(np.int32)
-    return lab
-
-
-def sibling_border_fraction(lab: np.ndarray) -> FloatArray:
-    """(lab.max() + 1,) fraction of each label's border pixels (4-neighbours of another value) that touch another
-    label > 0 of `lab` (h, w) int32, rather than background."""
-    n = int(lab.max()) + 1
-    pad = np.pad(lab, 1)
-    border = np.zeros(lab.shape, bool)
-    sibling = np.zeros(lab.shape, bool)
-    for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
-        nb = pad[dy : dy + lab.shape[0], dx : dx + lab.shape[1]]
-        diff = nb != lab
-        border |= diff
-        sibling |= diff & (nb > 0)
-    own = lab > 0
-    tot = np.bincount(lab[own & border], minlength=n).astype(np.float64)
-    sib = np.bincount(lab[own & sibling], minlength=n).astype(np.float64)
-    return np.where(tot > 0, sib / np.maximum(tot, 1.0), 0.0)
 
 
 def _normals(
@@ -541,13 +472,12 @@ class DepthSegmenter:
 
     def _part_like(
         self, lab: np.ndarray, zm: np.ndarray, fx: float, min_px: int, upright: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Two (lab.max() + 1,) bool arrays over the labels of `lab` (h, w): may be a part (at least `min_px` pixels,
-        at most max_extent_m long, not thin and long like a wall rim or rail, not mostly `upright` (h, w) bool
-        pixels), and too long; zm: depth, metres; fx: focal length, pixels."""
+    ) -> np.ndarray:
+        """(lab.max() + 1,) bool over the labels of `lab` (h, w): may be a part (at least `min_px` pixels, at most
+        max_extent_m long, not thin and long like a wall rim or rail, not mostly `upright` (h, w) bool pixels);
+        zm: depth, metres; fx: focal length, pixels."""
         o = self.options
         ok = np.zeros(int(lab.max()) + 1, bool)
-        too_long = np.zeros(int(lab.max()) + 1, bool)
         for comp0, sl in enumerate(ndimage.find_objects(lab)):
             if sl is None:
                 continue
@@ -557,7 +487,6 @@ class DepthSegmenter:
             m_per_px = float(np.median(zm[sl][ys, xs])) / fx
             (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xs, ys]).astype(np.float32))
             short, long_ = sorted((rw * m_per_px, rh * m_per_px))
-            too_long[comp0 + 1] = long_ > o.max_extent_m
             ok[comp0 + 1] = not (
                 long_ > o.max_extent_m
                 or (short < o.rim_width_m and long_ > max(o.rim_length_m, o.rim_elongation * short))
@@ -565,7 +494,7 @@ class DepthSegmenter:
             if upright is not None and ok[comp0 + 1]:
                 # a piece made of faces standing upright on the support plane is a wall, not a part
                 ok[comp0 + 1] = np.count_nonzero(upright[sl][ys, xs]) < o.max_wall_fraction * len(ys)
-        return ok, too_long
+        return ok
 
     def label_image(self, frame: RGBDFrame) -> tuple[np.ndarray, int]:
         """(H, W) int32 label image at frame resolution (0 = background) and the number of labels."""
@@ -639,7 +568,6 @@ class DepthSegmenter:
                     else (slice(None), slice(off, off + crease.shape[1]))
                 )
                 edge[m] |= crease
-        crease_px = edge.copy()
         edge |= jump_px
         core = fg & ~edge
 
@@ -679,26 +607,13 @@ class DepthSegmenter:
                 fx,
                 o.merge_max_extent_m,
                 o.merge_max_jump_fraction,
-                crease_px,
-                o.neck_merge_max_extent_m,
             )
 
         # size / shape filters in metres
         cos_up = np.float32(np.cos(np.radians(o.wall_angle_deg)))
         upright = np.abs(nx * np.float32(support_n[0]) + ny * np.float32(support_n[1]) + nz * np.float32(support_n[2]))
         upright = upright < cos_up
-        ok, too_long = self._part_like(lab, zm, fx, min_px, upright)
-        if o.neck_px > 0 and too_long.any():
-            # a component too long for a part (parts leaking into a wall or rail, a pile joined through gaps in its
-            # edges) is cut at its necks and its pieces are judged one by one
-            big = too_long[lab]
-            pieces = split_necks(big, o.neck_px)
-            ok_p, _ = self._part_like(pieces, zm, fx, min_px, upright)
-            # a piece of a wall or table is mostly bordered by its sibling pieces, a part mostly by edges
-            ok_p &= sibling_border_fraction(pieces) <= o.max_neck_border
-            base = int(lab.max())
-            lab = np.where(big, np.where(pieces > 0, pieces + base, 0), lab).astype(np.int32)
-            ok = np.concatenate([ok, ok_p[1:]])
+        ok = self._part_like(lab, zm, fx, min_px, upright)
         keep_ids = np.flatnonzero(ok)
         final = np.zeros(int(lab.max()) + 1, np.int32)
         final[keep_ids] = np.arange(1, len(keep_ids) + 1, dtype=np.int32)
