@@ -17,7 +17,7 @@ from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.measure.normpos import NormPosition
 from normpos_grasp.perception.base import Instance, Segmenter
 from normpos_grasp.planning.plan import PickPlan, PlanOptions, plan_pick
-from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best
+from normpos_grasp.templates.fit import FitContext, FitOptions, fit_many
 from normpos_grasp.templates.model import Template, TemplateFit
 from normpos_grasp.typing import FloatArray
 
@@ -84,7 +84,7 @@ def perceive(
     timings["measure"] = _ms(t0)
     t0 = time.perf_counter()
     context = FitContext(frame.camera, frame.depth_m)
-    fits = [fit_best(np_, templates, opts.fit, context) for np_ in normpositions]
+    fits = fit_many(normpositions, templates, opts.fit, context)
     timings["fit"] = _ms(t0)
     return FrameResult(frame, found, normpositions, fits, None, timings)
 

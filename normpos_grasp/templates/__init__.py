@@ -12,6 +12,7 @@ __all__ = [
     "TemplateLibrary",
     "fit_best",
     "fit_best_or_raise",
+    "fit_many",
     "fit_template",
     "fit_template_or_raise",
     "load_library",
@@ -22,7 +23,15 @@ __all__ = [
 
 def __getattr__(name: str) -> object:
     """Lazy access to the fitting and library API (keeps `import normpos_grasp.templates` light)."""
-    if name in ("FitContext", "FitOptions", "fit_best", "fit_best_or_raise", "fit_template", "fit_template_or_raise"):
+    if name in (
+        "FitContext",
+        "FitOptions",
+        "fit_best",
+        "fit_best_or_raise",
+        "fit_many",
+        "fit_template",
+        "fit_template_or_raise",
+    ):
         from normpos_grasp.templates import fit
 
         return getattr(fit, name)

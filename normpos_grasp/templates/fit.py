@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -170,7 +172,7 @@ def fit_template(
         meas = _prepare_measurement(normpos, opts)
     except _TooFew as exc:
         return _rejected(template, normpos, str(exc), t0)
-    return _fit_prepared(normpos, template, meas, opts, camera, 0.0, t0)
+    return _fit_prepared(normpos, template, meas, opts, _context(camera, opts), 0.0, t0)
 
 
 def _fit_prepared(
@@ -182,11 +184,9 @@ def _fit_prepared(
     floor: float,
     t0: float,
 ) -> TemplateFit:
-    """`fit_template` on a prepared measurement; poses whose score bound is below `floor` are not scored."""
+    """`fit_template` on a prepared measurement and context (`_context`); poses whose score bound is below
+    `floor` are not scored."""
     prep = prepare(template)
-    if camera is not None and opts.depth_bias_m:
-        d = np.asarray(camera.depth_m, dtype=np.float64)
-        camera = FitContext(camera.camera, np.where(d > 0, d - opts.depth_bias_m, 0.0))
     cands = _fit_candidates(prep, template, normpos, meas, opts, camera, floor)
     if not cands:
         reason = "no pose hypothesis explained the measured points"
@@ -242,6 +242,7 @@ def fit_best(
     # likeliest template first (measured extents closest to the template's): its score sets a floor below
     # which the other templates' poses need not be scored (they could be neither the best nor a class rival)
     chosen.sort(key=lambda t: _extent_mismatch(normpos, t))
+    camera = _context(camera, opts)
     fits: list[TemplateFit] = []
     for t in chosen:
         floor = opts.class_ambiguity_ratio * max((f.score for f in fits if f.accepted), default=0.0)
@@ -272,11 +273,50 @@ def fit_best_or_raise(
     return fit
 
 
+def fit_many(
+    normposes: Sequence[NormPosition],
+    library: object,
+    options: FitOptions | None = None,
+    camera: FitContext | None = None,
+    workers: int = 2,
+) -> list[TemplateFit]:
+    """`fit_best` of every norm-position (the objects of one frame), in input order, on `workers` threads.
+
+    The fitting kernels are compiled and release the GIL, so objects are fitted in parallel (2 workers on 2
+    cores: about twice as fast as a loop). workers <= 1 fits one after the other. Results equal `fit_best`'s.
+    """
+    templates = list(library)  # type: ignore[call-overload]
+    if not templates:
+        raise TemplateError("the template library is empty; load templates with load_library(path)")
+    if workers < 0:
+        raise InputError(f"workers must be >= 0, got {workers}")
+    nps = list(normposes)
+    labels = {n.label for n in nps}
+    # build the per-template caches once, before the threads race for them
+    for t in templates:
+        if "" in labels or labels & {t.label, t.name}:
+            prepare(t)
+    if workers <= 1 or len(nps) <= 1:
+        return [fit_best(n, templates, options, camera) for n in nps]
+    with ThreadPoolExecutor(max_workers=min(workers, len(nps)), thread_name_prefix="fit") as pool:
+        return list(pool.map(lambda n: fit_best(n, templates, options, camera), nps))
+
+
 # -- internals -------------------------------------------------------------------------------------
 
 
 class _TooFew(Exception):
     pass
+
+
+def _context(camera: FitContext | None, opts: FitOptions) -> FitContext | None:
+    """The context with a float64 depth image, corrected by `depth_bias_m` (done once per object, not per pose)."""
+    if camera is None:
+        return None
+    d = np.ascontiguousarray(camera.depth_m, dtype=np.float64)
+    if opts.depth_bias_m:
+        d = np.where(d > 0, d - opts.depth_bias_m, 0.0)
+    return camera if d is camera.depth_m else FitContext(camera.camera, d)
 
 
 def _prepare_measurement(normpos: NormPosition, opts: FitOptions) -> _Measured:

@@ -1,0 +1,143 @@
+"""Compiled fitting kernels agree with plain numpy / scipy references; fit_many equals fit_best in a loop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+trimesh = pytest.importorskip("trimesh")
+pytest.importorskip("numba")
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from normpos_grasp.camera.model import Camera  # noqa: E402
+from normpos_grasp.geometry.transforms import make_pose, random_rotation  # noqa: E402
+from normpos_grasp.templates import kernels  # noqa: E402
+from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many  # noqa: E402
+from normpos_grasp.templates.library import load_library  # noqa: E402
+from normpos_grasp.templates.model import Template  # noqa: E402
+from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins, prepare  # noqa: E402
+from normpos_grasp.templates.synthetic import render_views  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+CAM = Camera(np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]]), 640, 480)
+
+
+@pytest.fixture(scope="module")
+def lib() -> dict[str, Template]:
+    return {t.name: t for t in load_library(REPO / "examples" / "templates")}
+
+
+def _queries(prep: PreparedTemplate, seed: int, n: int = 600) -> tuple[np.ndarray, np.ndarray]:
+    """Points near and far from the surface with noisy normals (some disagreeing with the nearest sample's)."""
+    rng = np.random.default_rng(seed)
+    i = rng.choice(len(prep.samples), n)
+    spread = rng.choice([0.001, 0.01, 0.3 * prep.diameter], size=(n, 1))
+    y = prep.samples[i] + rng.normal(0.0, 1.0, (n, 3)) * spread
+    ny = prep.normals[i] + rng.normal(0.0, 0.6, (n, 3))
+    return y, ny / np.linalg.norm(ny, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("name", ["l_bracket", "cube_40mm"])
+def test_exact_correspondences_match_kd_tree_reference(lib: dict[str, Template], name: str) -> None:
+    prep = prepare(lib[name])
+    y, ny = _queries(prep, 3)
+    r, d, sel = kernels.correspond_many(y, ny, True, prep.samples, prep.normals, prep.grid, prep.kd)
+    # reference: scipy KD-tree nearest; where its normal disagrees, the nearest sample of the normal's bin
+    dist, idx = prep.tree.query(y)
+    ok = np.einsum("pd,pd->p", prep.normals[idx], ny) > kernels.NORMAL_COS
+    bad = np.flatnonzero(~ok)
+    d2, i2 = prep.nearest_binned(y[bad], normal_bins(ny[bad]))
+    dist[bad], idx[bad] = d2, i2
+    ok[bad] = np.einsum("pd,pd->p", prep.normals[i2], ny[bad]) > kernels.NORMAL_COS
+    ref_d = np.where(ok, dist, np.inf)
+    assert len(bad) > 20  # the normal-bin fallback is exercised
+    np.testing.assert_array_equal(np.isfinite(d), np.isfinite(ref_d))
+    fin = np.isfinite(d)
+    np.testing.assert_allclose(d[fin], ref_d[fin], rtol=0, atol=1e-12)
+    ref_r = np.einsum("pd,pd->p", y - prep.samples[sel], prep.normals[sel])
+    np.testing.assert_allclose(r, ref_r, atol=1e-12)
+
+
+def test_grid_correspondences_follow_the_distance_grid(lib: dict[str, Template]) -> None:
+    prep = prepare(lib["l_bracket"])
+    y, ny = _queries(prep, 4)
+    r, d, sel = kernels.correspond_many(y, ny, False, prep.samples, prep.normals, prep.grid, prep.kd)
+    idx, inside = prep.grid_lookup(y)
+    ok = np.einsum("pd,pd->p", prep.normals[idx], ny) > kernels.NORMAL_COS
+    bad = np.flatnonzero(~ok)
+    s2, in2 = prep.grid_lookup_binned(y[bad], normal_bins(ny[bad]))
+    idx[bad] = np.where(s2 >= 0, s2, len(prep.samples) - 1)
+    inside[bad] = in2
+    ok[bad] = np.einsum("pd,pd->p", prep.normals[idx[bad]], ny[bad]) > kernels.NORMAL_COS
+    ref_d = np.where((inside > 0) & ok, np.linalg.norm(y - prep.samples[idx], axis=1), np.inf)
+    np.testing.assert_array_equal(sel, idx)
+    np.testing.assert_allclose(d, ref_d, atol=1e-12)
+    np.testing.assert_allclose(r, np.einsum("pd,pd->p", y - prep.samples[idx], prep.normals[idx]), atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 7))
+def test_solve_matches_numpy(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(n, n))
+    a = m @ m.T + 1e-3 * np.eye(n)
+    b = rng.normal(size=n)
+    x = kernels._solve(a.copy(), b.copy(), n)
+    np.testing.assert_allclose(a @ x, b, atol=1e-8 * max(1.0, float(np.abs(b).max())))
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000))
+def test_nearest_rows_match_sorted_distances(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    data = rng.random((int(rng.integers(3, 60)), 33))
+    query = rng.random((int(rng.integers(1, 20)), 33))
+    out = kernels.nearest_rows(query, np.ascontiguousarray(data.T), 3)
+    d2 = ((query[:, None] - data[None]) ** 2).sum(-1)
+    ref = np.argsort(d2, axis=1, kind="stable")[:, :3]
+    np.testing.assert_allclose(np.take_along_axis(d2, out, 1), np.take_along_axis(d2, ref, 1), rtol=1e-12)
+
+
+def test_icp_recovers_a_perturbed_pose(lib: dict[str, Template]) -> None:
+    from normpos_grasp.templates.icp import icp
+
+    t = lib["l_bracket"]
+    prep = prepare(t)
+    rng = np.random.default_rng(5)
+    gt = make_pose(random_rotation(rng), [0.01, -0.02, 0.6])
+    view = render_views(CAM, [(t, gt)], rng)
+    pts = np.asarray(view.normpos[0].points)[:: max(1, len(view.normpos[0].points) // 200)]
+    nrm = np.asarray(view.normpos[0].normals)[:: max(1, len(view.normpos[0].points) // 200)]
+    turn = Rotation.from_rotvec(np.deg2rad(6) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    start = make_pose(turn, [0.003, -0.002, 0.003]) @ np.linalg.inv(gt)
+    thr = np.full(len(pts), 0.003)
+    kw = {"fit_scale": False, "scale_tolerance": 0.05, "max_corr_start": 0.15 * prep.diameter}
+    poses, scales, frac = icp(prep, start[None], np.ones(1), pts, nrm, thr, iterations=15, exact=False, **kw)
+    err = poses[0] @ gt
+    assert np.linalg.norm(err[:3, 3]) < 0.002
+    assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 1.0
+    assert frac[0] > 0.8 and scales[0] == 1.0
+
+
+def test_fit_many_equals_fit_best_in_a_loop(lib: dict[str, Template]) -> None:
+    rng = np.random.default_rng(11)
+    scene = [
+        (lib["l_bracket"], make_pose(random_rotation(rng), [-0.06, 0.0, 0.6])),
+        (lib["cube_40mm"], make_pose(random_rotation(rng), [0.06, 0.02, 0.65])),
+    ]
+    view = render_views(CAM, scene, rng)
+    ctx = FitContext(CAM, view.depth_m)
+    templates = list(lib.values())
+    loop = [fit_best(n, templates, FitOptions(), ctx) for n in view.normpos]
+    many = fit_many(view.normpos, templates, FitOptions(), ctx, workers=2)
+    assert len(many) == len(loop) == 2
+    for a, b in zip(many, loop, strict=True):
+        assert (a.template.name, a.accepted) == (b.template.name, b.accepted)
+        assert a.accepted
+        np.testing.assert_allclose(a.world_from_object, b.world_from_object, atol=1e-12)
+        assert a.score == b.score
