@@ -80,8 +80,8 @@ class DepthSegmenterOptions:
     min_plane_area_m2: float = 0.012
     ransac_iterations: int = 96
     ransac_samples: int = 2048
-    depth_jump_m: float = 0.006
-    depth_jump_rel: float = 0.005
+    depth_jump_m: float = 0.004
+    depth_jump_rel: float = 0.003
     crease_angle_deg: float = 35.0
     steep_faces: bool = True
     smooth_depth_m: float = 0.01
