@@ -116,8 +116,19 @@ def test_icp_recovers_a_perturbed_pose(lib: dict[str, Template]) -> None:
     turn = Rotation.from_rotvec(np.deg2rad(6) * np.array([0.6, -0.8, 0.0])).as_matrix()
     start = make_pose(turn, [0.003, -0.002, 0.003]) @ np.linalg.inv(gt)
     thr = np.full(len(pts), 0.003)
-    kw = {"fit_scale": False, "scale_tolerance": 0.05, "max_corr_start": 0.15 * prep.diameter}
-    poses, scales, frac = icp(prep, start[None], np.ones(1), pts, nrm, thr, iterations=15, exact=False, **kw)
+    poses, scales, frac = icp(
+        prep,
+        start[None],
+        np.ones(1),
+        pts,
+        nrm,
+        thr,
+        iterations=15,
+        exact=False,
+        fit_scale=False,
+        scale_tolerance=0.05,
+        max_corr_start=0.15 * prep.diameter,
+    )
     err = poses[0] @ gt
     assert np.linalg.norm(err[:3, 3]) < 0.002
     assert np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1))) < 1.0
@@ -141,3 +152,34 @@ def test_fit_many_equals_fit_best_in_a_loop(lib: dict[str, Template]) -> None:
         assert a.accepted
         np.testing.assert_allclose(a.world_from_object, b.world_from_object, atol=1e-12)
         assert a.score == b.score
+
+
+@pytest.mark.parametrize("fit_scale", [False, True])
+def test_point_term_sums_match_closed_form(fit_scale: bool) -> None:
+    from normpos_grasp.templates.icp import point_to_point_normal_equations
+
+    rng = np.random.default_rng(2)
+    y = rng.normal(0, 0.05, (50, 3))
+    e = rng.normal(0, 0.002, (50, 3))
+    w = rng.uniform(0, 1, 50)
+    c = np.array([0.01, -0.02, 0.03])
+    ye = np.cross(y, e)
+    outer = np.einsum("p,pi,pj->ij", w, y, y)
+    pp = np.concatenate(
+        [
+            [w.sum()],
+            w @ y,
+            [outer[0, 0], outer[0, 1], outer[0, 2], outer[1, 1], outer[1, 2], outer[2, 2]],
+            w @ e,
+            w @ ye,
+            [w @ np.einsum("pi,pi->p", y, e)],
+        ]
+    )
+    dof = 7 if fit_scale else 6
+    a = np.zeros((7, 7))
+    b = np.zeros(7)
+    kernels._add_point_terms(a, b, pp, c, fit_scale)
+    a = np.triu(a) + np.triu(a, 1).T
+    a_ref, b_ref = point_to_point_normal_equations(y[None], e[None], w[None], c, fit_scale=fit_scale)
+    np.testing.assert_allclose(a[:dof, :dof], a_ref[0], atol=1e-14)
+    np.testing.assert_allclose(-b[:dof], -b_ref[0], atol=1e-14)

@@ -6,8 +6,10 @@ GIL so that several objects can be fitted in parallel threads (`fit.fit_many`).
 
 Shared arguments (built once per template in `prepared.PreparedTemplate`):
     samples, normals: (S, 3) float64 template surface points and unit outward normals (object frame, metres).
-    grid: (origin (3,), cell (1,), index (G, G, G) int32, index_bins (6, G, G, G) int32): the distance grid
-        (nearest sample per cell, overall and per normal bin; -1 where a bin has no sample).
+    grid: (origin (3,), cell (1,), index (G, G, G) int32, index_bins (6, G, G, G) int32, cand_start (G^3 + 1,),
+        cand_idx (C,) int32): the distance grid (nearest sample per cell, overall and per normal bin; -1 where a
+        bin has no sample) and, for cells near the surface, every sample that can be the exact nearest one of a
+        point in the cell (cand_idx[cand_start[c]:cand_start[c + 1]], c = (i G + j) G + k; empty elsewhere).
     kd: (dim, split, left, right, start, end, perm, roots): flat arrays of 7 KD-trees over the samples
         (all samples, then one per normal bin; roots (7,) with -1 for an empty bin); leaves hold
         perm[start:end] (sample indices).
@@ -161,7 +163,7 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
     the normal's bin; points outside the grid get none. Exact mode: the exact nearest sample (KD-tree), else the
     exact nearest one of the normal's bin. Written as one loop (per-point helper calls cost more than the work).
     """
-    origin, cellarr, gi, gib = grid
+    origin, cellarr, gi, gib, cand_start, cand_idx = grid
     dim, split, left, right, start, end, perm, roots = kd
     cell = cellarr[0]
     o0, o1, o2 = origin[0], origin[1], origin[2]
@@ -192,27 +194,40 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
             e2 = y2 - samples[s, 2]
             d[q] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) if (inside and ok) else np.inf
         else:
-            e0 = y0 - samples[s, 0]
-            e1 = y1 - samples[s, 1]
-            e2 = y2 - samples[s, 2]
-            d2, s = _kd_nearest(
-                y0,
-                y1,
-                y2,
-                roots[0],
-                samples,
-                dim,
-                split,
-                left,
-                right,
-                start,
-                end,
-                perm,
-                e0 * e0 + e1 * e1 + e2 * e2,
-                s,
-                stack_n,
-                stack_b,
-            )
+            c = (i * g + j) * g + k
+            if inside and cand_start[c + 1] > cand_start[c]:
+                d2 = np.inf
+                for m in range(cand_start[c], cand_start[c + 1]):
+                    sm = cand_idx[m]
+                    e0 = y0 - samples[sm, 0]
+                    e1 = y1 - samples[sm, 1]
+                    e2 = y2 - samples[sm, 2]
+                    dm = e0 * e0 + e1 * e1 + e2 * e2
+                    if dm < d2:
+                        d2 = dm
+                        s = sm
+            else:
+                e0 = y0 - samples[s, 0]
+                e1 = y1 - samples[s, 1]
+                e2 = y2 - samples[s, 2]
+                d2, s = _kd_nearest(
+                    y0,
+                    y1,
+                    y2,
+                    roots[0],
+                    samples,
+                    dim,
+                    split,
+                    left,
+                    right,
+                    start,
+                    end,
+                    perm,
+                    e0 * e0 + e1 * e1 + e2 * e2,
+                    s,
+                    stack_n,
+                    stack_b,
+                )
             ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
             if not ok:
                 b = _normal_bin(n0, n1, n2)
@@ -340,6 +355,49 @@ def _rodrigues(k0, k1, k2, st, ct):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
+def _add_point_terms(a, b, pp, c, fit_scale):  # type: ignore[no-untyped-def]
+    """Add the point-to-point normal equations (upper triangle of a, and b) from the sums `pp` (see icp_run):
+    per point J = [-[y]x, I(, -(y - c))], e = y - model point; a += sum w J^T J, b -= sum w J^T e
+    (as `icp.point_to_point_normal_equations`)."""
+    s0 = pp[0]
+    s1x, s1y, s1z = pp[1], pp[2], pp[3]
+    xx, xy, xz, yy, yz, zz = pp[4], pp[5], pp[6], pp[7], pp[8], pp[9]
+    tr = xx + yy + zz
+    a[0, 0] += tr - xx
+    a[0, 1] -= xy
+    a[0, 2] -= xz
+    a[1, 1] += tr - yy
+    a[1, 2] -= yz
+    a[2, 2] += tr - zz
+    # [s1]x in the rotation-translation block
+    a[0, 4] -= s1z
+    a[0, 5] += s1y
+    a[1, 3] += s1z
+    a[1, 5] -= s1x
+    a[2, 3] -= s1y
+    a[2, 4] += s1x
+    a[3, 3] += s0
+    a[4, 4] += s0
+    a[5, 5] += s0
+    b[0] -= pp[13]
+    b[1] -= pp[14]
+    b[2] -= pp[15]
+    b[3] -= pp[10]
+    b[4] -= pp[11]
+    b[5] -= pp[12]
+    if fit_scale:
+        c0, c1, c2 = c[0], c[1], c[2]
+        a[0, 6] += s1y * c2 - s1z * c1
+        a[1, 6] += s1z * c0 - s1x * c2
+        a[2, 6] += s1x * c1 - s1y * c0
+        a[3, 6] -= s1x - s0 * c0
+        a[4, 6] -= s1y - s0 * c1
+        a[5, 6] -= s1z - s0 * c2
+        a[6, 6] += tr - 2.0 * (c0 * s1x + c1 * s1y + c2 * s1z) + s0 * (c0 * c0 + c1 * c1 + c2 * c2)
+        b[6] += pp[16] - (c0 * pp[10] + c1 * pp[11] + c2 * pp[12])
+
+
+@njit(cache=True, nogil=True)
 def icp_run(  # type: ignore[no-untyped-def]
     poses,
     scales,
@@ -391,7 +449,7 @@ def icp_run(  # type: ignore[no-untyped-def]
     a = np.empty((7, 7))
     b = np.empty(7)
     jac = np.empty(7)
-    jp = np.empty((3, 7))
+    pp = np.zeros(17)
     stack_n = np.empty(_STACK, dtype=np.int64)
     stack_b = np.empty(_STACK)
     c0, c1, c2 = centroid[0], centroid[1], centroid[2]
@@ -428,6 +486,7 @@ def icp_run(  # type: ignore[no-untyped-def]
                 b[u] = 0.0
                 for v in range(7):
                     a[u, v] = 0.0
+            pp[:] = 0.0
             for q in range(p):
                 if not (d[q] < gate) or abs(r[q]) > cut:
                     continue
@@ -450,30 +509,31 @@ def icp_run(  # type: ignore[no-untyped-def]
                     for v in range(u, dof):
                         a[u, v] += wu * jac[v]
                 if point_weight > 0.0:
+                    # point-to-point term, J = [-[y]x, I, -(y - c)]: its normal equations are sums of
+                    # w, w y, w y y^T, w e, w y x e and w y.e (assembled in closed form below)
                     wp = w * point_weight
                     e0 = y0 - samples[m, 0]
                     e1 = y1 - samples[m, 1]
                     e2 = y2 - samples[m, 2]
-                    # J = [-[y]x, I, -(y - c)] (3 x dof)
-                    jp[0, 0] = 0.0
-                    jp[0, 1] = y2
-                    jp[0, 2] = -y1
-                    jp[1, 0] = -y2
-                    jp[1, 1] = 0.0
-                    jp[1, 2] = y0
-                    jp[2, 0] = y1
-                    jp[2, 1] = -y0
-                    jp[2, 2] = 0.0
-                    for rr in range(3):
-                        for cc in range(3):
-                            jp[rr, 3 + cc] = 1.0 if rr == cc else 0.0
-                    jp[0, 6] = -(y0 - c0)
-                    jp[1, 6] = -(y1 - c1)
-                    jp[2, 6] = -(y2 - c2)
-                    for u in range(dof):
-                        b[u] -= wp * (jp[0, u] * e0 + jp[1, u] * e1 + jp[2, u] * e2)
-                        for v in range(u, dof):
-                            a[u, v] += wp * (jp[0, u] * jp[0, v] + jp[1, u] * jp[1, v] + jp[2, u] * jp[2, v])
+                    pp[0] += wp
+                    pp[1] += wp * y0
+                    pp[2] += wp * y1
+                    pp[3] += wp * y2
+                    pp[4] += wp * y0 * y0
+                    pp[5] += wp * y0 * y1
+                    pp[6] += wp * y0 * y2
+                    pp[7] += wp * y1 * y1
+                    pp[8] += wp * y1 * y2
+                    pp[9] += wp * y2 * y2
+                    pp[10] += wp * e0
+                    pp[11] += wp * e1
+                    pp[12] += wp * e2
+                    pp[13] += wp * (y1 * e2 - y2 * e1)
+                    pp[14] += wp * (y2 * e0 - y0 * e2)
+                    pp[15] += wp * (y0 * e1 - y1 * e0)
+                    pp[16] += wp * (y0 * e0 + y1 * e1 + y2 * e2)
+            if point_weight > 0.0:
+                _add_point_terms(a, b, pp, centroid, fit_scale)
             for u in range(dof):
                 a[u, u] += 1e-9
                 for v in range(u):

@@ -25,6 +25,8 @@ _LOCK = threading.Lock()
 
 N_SAMPLES = 4000
 GRID = 48
+#: distance-grid cells whose centre lies within this many cells of the surface keep exact-nearest candidates
+CANDIDATE_CELLS = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,8 +38,8 @@ class PreparedTemplate:
     diameter: metres. spacing: mean sample spacing, metres. grid_origin (3,), grid_cell: distance-grid frame;
     grid_index: (G, G, G) nearest sample per cell. sym: (M, 4, 4) symmetry transforms incl. identity.
     desc_idx: (F,) sample indices with FPFH descriptors `desc` (F, 33); desc_tree on them.
-    grid / kd: the distance grids and flat KD-trees (all samples, then per normal bin) in the layout of
-    `kernels` (compiled correspondences).
+    grid / kd: the distance grids (with per-cell exact-nearest candidates) and flat KD-trees (all samples,
+    then per normal bin) in the layout of `kernels` (compiled correspondences).
     """
 
     samples: FloatArray
@@ -149,8 +151,18 @@ def _build(template: Template) -> PreparedTemplate:
     origin = lo - pad
     centers = origin + (np.stack(np.meshgrid(*[np.arange(GRID)] * 3, indexing="ij"), -1) + 0.5) * cell
     flat = centers.reshape(-1, 3)
-    _, gidx = tree.query(flat)
+    gdist, gidx = tree.query(flat)
     grid_index = np.asarray(gidx, dtype=np.int32).reshape(GRID, GRID, GRID)
+    # exact-nearest candidates of cells near the surface: a point in a cell whose centre lies d_c from its
+    # nearest sample is at most d_c + h from that sample (h: half the cell diagonal), so its nearest sample
+    # lies within d_c + 2 h of the centre
+    near = np.flatnonzero(gdist <= CANDIDATE_CELLS * cell)
+    balls = tree.query_ball_point(flat[near], gdist[near] + np.sqrt(3.0) * cell * (1.0 + 1e-9), return_sorted=False)
+    counts = np.zeros(GRID**3, dtype=np.int64)
+    counts[near] = [len(b) for b in balls]
+    cand_start = np.zeros(GRID**3 + 1, dtype=np.int64)
+    np.cumsum(counts, out=cand_start[1:])
+    cand_idx = np.concatenate([np.asarray(b, dtype=np.int32) for b in balls]) if len(near) else np.zeros(0, np.int32)
     sbins = normal_bins(normals)
     bin_grids = np.full((6, GRID, GRID, GRID), -1, dtype=np.int32)
     bin_trees: list[tuple[cKDTree | None, IntArray]] = []
@@ -188,7 +200,7 @@ def _build(template: Template) -> PreparedTemplate:
         desc=desc,
         desc_tree=cKDTree(desc),
         voxel=voxel,
-        grid=(np.asarray(origin, dtype=np.float64), np.array([cell]), grid_index, bin_grids),
+        grid=(np.asarray(origin, dtype=np.float64), np.array([cell]), grid_index, bin_grids, cand_start, cand_idx),
         kd=kd,
     )
 
