@@ -78,8 +78,8 @@ class DepthSegmenterOptions:
     plane_normal_deg: float = 90.0
     min_plane_fraction: float = 0.05
     min_plane_area_m2: float = 0.012
-    ransac_iterations: int = 96
-    ransac_samples: int = 2048
+    ransac_iterations: int = 64
+    ransac_samples: int = 1024
     depth_jump_m: float = 0.004
     depth_jump_rel: float = 0.003
     crease_angle_deg: float = 35.0
@@ -108,6 +108,13 @@ class DepthSegmenterOptions:
             raise InputError("plane_tolerance_m and depth_jump_m must be > 0, crease_angle_deg in (0, 180)")
 
 
+def _dots(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(S, I) dot products of (S, 3) points with (I, 3) normals, float32 (broadcast: no BLAS threads)."""
+    p = np.asarray(points, np.float32)
+    n = np.asarray(normals, np.float32)
+    return p[:, 0:1] * n[None, :, 0] + p[:, 1:2] * n[None, :, 1] + p[:, 2:3] * n[None, :, 2]
+
+
 def _fit_plane(points: FloatArray) -> tuple[FloatArray, float]:
     """Least-squares plane through (N, 3) points: unit normal n and offset d with n . p + d = 0."""
     c = points.mean(axis=0)
@@ -134,12 +141,7 @@ def ransac_plane(
     normals = normals[ok] / norm[ok, None]
     ds = -np.einsum("ij,ij->i", normals, tri[ok, 0])
     # (S, I) distances by broadcasting (no BLAS threads)
-    dist = np.abs(
-        sub[:, 0:1] * normals[None, :, 0]
-        + sub[:, 1:2] * normals[None, :, 1]
-        + sub[:, 2:3] * normals[None, :, 2]
-        + ds[None, :]
-    )
+    dist = np.abs(_dots(sub, normals) + ds[None, :])  # (S, I)
     support = (dist < sub_tol[:, None]).sum(axis=0)
     best = int(np.argmax(support))
     n, d = normals[best], float(ds[best])
@@ -276,10 +278,11 @@ def fill_enclosed_holes(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
     ring_id = cv2.dilate(cc.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int32)
     ring = valid & (ring_id > 0)
     ids = ring_id[ring]
-    lo = np.full(n, np.iinfo(np.int32).max, np.int64)
-    hi = np.full(n, -1, np.int64)
-    np.minimum.at(lo, ids, lab[ring])
-    np.maximum.at(hi, ids, lab[ring])
+    index = np.arange(n)
+    lo = np.asarray(ndimage.minimum(lab[ring], ids, index), np.float64)
+    hi = np.asarray(ndimage.maximum(lab[ring], ids, index), np.float64)
+    lo = np.nan_to_num(lo, nan=-1.0).astype(np.int64)
+    hi = np.nan_to_num(hi, nan=-2.0).astype(np.int64)
     border = np.unique(np.concatenate([cc[0], cc[-1], cc[:, 0], cc[:, -1]]))
     fill = np.where((lo == hi) & (lo > 0), lo, 0)
     fill[border] = 0
@@ -420,6 +423,7 @@ class DepthSegmenter:
         cos_up = np.float32(np.cos(np.radians(o.wall_angle_deg)))
         up = fg & (np.abs(nx * np.float32(n1[0]) + ny * np.float32(n1[1]) + nz * np.float32(n1[2])) < cos_up)
         tol_img = o.wall_tolerance_m + o.plane_noise_factor * 0.0026 * zm * zm
+        z_far = float(zm[fg].max())
         fg = fg.copy()
         for _ in range(o.max_walls):
             sel = np.zeros_like(up)
@@ -441,25 +445,25 @@ class DepthSegmenter:
             normals = normals[good] / norm[good, None]
             ds = -np.sum(normals * pts[pair[good, 0]], axis=1)
             ps = pts[sub]
-            dist = np.abs(
-                ps[:, 0:1] * normals[None, :, 0]
-                + ps[:, 1:2] * normals[None, :, 1]
-                + ps[:, 2:3] * normals[None, :, 2]
-                + ds[None, :]
-            )
+            dist = np.abs(_dots(ps, normals) + ds[None, :])
             best = int(np.argmax((dist < tol[sub, None]).sum(axis=0)))
             n, d = normals[best], float(ds[best])
             near = fg & (
                 np.abs(xs_m * np.float32(n[0]) + ys_m * np.float32(n[1]) + zm * np.float32(n[2]) + d) < tol_img
             )
-            ncc, cc = cv2.connectedComponents(near.astype(np.uint8), connectivity=8)
+            ncc, cc, stats, _ = cv2.connectedComponentsWithStats(near.astype(np.uint8), connectivity=8)
             removed_any = False
-            for c, sl in enumerate(ndimage.find_objects(cc), start=1):
-                if sl is None:
+            # a region whose bounding box diagonal at the farthest depth is shorter than a wall cannot be one
+            diag = np.hypot(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) * z_far / fx
+            for c in np.flatnonzero((diag >= o.wall_min_length_m) & (stats[:, cv2.CC_STAT_AREA] >= 20)):
+                if c == 0:
                     continue
+                x0, y0 = stats[c, cv2.CC_STAT_LEFT], stats[c, cv2.CC_STAT_TOP]
+                sl = (
+                    slice(y0, y0 + stats[c, cv2.CC_STAT_HEIGHT]),
+                    slice(x0, x0 + stats[c, cv2.CC_STAT_WIDTH]),
+                )
                 yy, xx = np.nonzero(cc[sl] == c)
-                if len(yy) < 20:
-                    continue
                 (_, _), (rw, rh), _ = cv2.minAreaRect(np.column_stack([xx, yy]).astype(np.float32))
                 if max(rw, rh) * float(np.median(zm[sl][yy, xx])) / fx >= o.wall_min_length_m:
                     region = cc[sl] == c
