@@ -38,6 +38,8 @@ def _pick(scene: int, pick: int, success: bool, cause: str = "", part: str = "cu
         1,
         2,
         1,
+        0,
+        0,
         123.0,
         456.0,
     )

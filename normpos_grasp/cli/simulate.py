@@ -48,6 +48,11 @@ def register(subparsers: Any) -> None:
         help="fresh captures (everything fitted anew) before a 'no feasible grasp' ends a scene",
     )
     parser.add_argument(
+        "--no-relaxed-plan",
+        action="store_true",
+        help="no second planning pass with relaxed margins when the planner finds no feasible grasp",
+    )
+    parser.add_argument(
         "--no-reuse-fits",
         action="store_true",
         help="fit every instance of every frame (default: keep the fits of instances the change detection finds "
@@ -82,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
         resolution=parse_resolution(args.resolution),
         perception_retries=args.retries,
         reuse_fits=not args.no_reuse_fits,
+        relaxed_plan=not args.no_relaxed_plan,
         pick_unmatched=not args.no_pick_unmatched,
     )
     bar = tqdm(total=args.scenes, unit="scene", disable=args.no_progress)

@@ -58,6 +58,8 @@ CSV_COLUMNS = (
     "captures",
     "fitted",
     "reused",
+    "nudges",
+    "nudge_collisions",
 )
 
 
@@ -183,6 +185,8 @@ def summarise(result: BatchResult) -> dict[str, Any]:
         "scenes_cleared": sum(1 for s in result.scenes if s.cleared),
         "parts_picked": succeeded,
         "parts_left_in_bin": sum(s.parts_left for s in result.scenes),
+        "nudges": sum(p.nudges for p in picks),
+        "nudge_collisions": sum(p.nudge_collisions for p in picks),
         "picks_attempted": attempted,
         "picks_succeeded": succeeded,
         "success_rate": round(succeeded / attempted, 6) if attempted else 0.0,

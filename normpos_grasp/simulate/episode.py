@@ -26,6 +26,7 @@ import numpy as np
 
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.geometry.transforms import make_pose, transform_points
+from normpos_grasp.planning.evaluate import EvaluationOptions
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
 from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
@@ -55,6 +56,11 @@ class SimulationConfig:
     the mask and over each of its halves, metres.
     perception_retries: when the planner finds no feasible grasp, the cell captures this many fresh frames (new
     sensor noise, everything fitted anew) before it gives up on the scene with a 'no_feasible_grasp' failure.
+    plan_evaluation: the planner's candidate evaluation settings. relaxed_plan: before a retry, the same frame is
+    planned again with `relaxed_evaluation` (riskier grasps: no extra noise margin around the other parts, jaw
+    tips raised further off the floor); physics judges them. max_nudges: when still no grasp is found, the cell
+    may push a part this many times per pick (`_plan_nudge` on the perceived scene, `sim.physics_push` on the
+    true one) by `nudge_m` metres and perceive again, before the retries.
     clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
     gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
     resolution: (W, H) image size, pixels. physics: physics options.
@@ -75,6 +81,13 @@ class SimulationConfig:
     reuse_iou: float = 0.95
     reuse_depth_m: float = 0.0015
     perception_retries: int = 1
+    plan_evaluation: EvaluationOptions = field(default_factory=EvaluationOptions)
+    relaxed_plan: bool = True
+    max_nudges: int = 2
+    nudge_m: float = 0.05
+    relaxed_evaluation: EvaluationOptions = field(
+        default_factory=lambda: EvaluationOptions(noise_margin=False, max_raise_m=0.03)
+    )
     clutter: float = 0.3
     stack_layers: int = 2
     gripper: str = ""
@@ -102,7 +115,8 @@ class PickRecord:
     depth_m: height of the part's centre above the bin floor; occlusion: 1 - visible share of its silhouette.
     fit_error_m: mean symmetric closest-point distance of the fitted vs true model points (nan when unknown).
     physics: physics outcome ('' when not simulated). captures: frames captured for this pick (1 + perception
-    retries used); fitted / reused: instances fitted anew / whose previous fit was kept (change detection).
+    retries used); fitted / reused: instances fitted anew / whose previous fit was kept (change detection);
+    nudges: pushes made before this pick (nudge_collisions of them hit the cell).
     Times in milliseconds."""
 
     scene: int
@@ -123,6 +137,8 @@ class PickRecord:
     captures: int
     fitted: int
     reused: int
+    nudges: int
+    nudge_collisions: int
     pipeline_ms: float
     physics_ms: float
 
@@ -322,6 +338,83 @@ def _perceive(
     return _Perception(frame, instances, normpositions, fits, len(fits) - reused, reused)
 
 
+def _plan_nudge(
+    plan: Any,
+    fits: list[Any],
+    normpositions: list[Any],
+    cell: Any,
+    spec: GripperSpec,
+    floor_z: float,
+    push_m: float,
+) -> tuple[FloatArray, FloatArray] | None:
+    """A push from the perceived scene only (fits and measured points, never the true poses): for the perceived
+    objects, highest first, and horizontal directions ranked towards the bin centre and away from the nearest
+    neighbours, the closed gripper's start pose beside the object's far side (jaw tips at a third of its height,
+    at least 6 mm above the floor; then at three quarters, tipping it over) must be clear of everything from 8 cm
+    above down to the start, and the hand must stay clear of the cell over the push.
+    Returns (world_from_tcp (4, 4), push (3,)) or None."""
+    from normpos_grasp.planning.arm import ArmModel
+    from normpos_grasp.planning.plan import PlanOptions, build_world
+
+    targets = list(plan.targets)
+    if not targets:
+        return None
+    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
+    world, _, _ = build_world(cell, fits, normpositions, arm, PlanOptions(pick_unmatched=True))
+    world.set_arm(arm)
+    world.set_tool(cell.tool)
+    world.update()
+    tip = float(getattr(cell.tool, "finger_depth_m", 0.0) or spec.tip_beyond_tcp_m)
+    half_width = spec.finger_width_m / 2.0
+    bin_xy = np.asarray(cell.bin.world_from_bin, dtype=np.float64)[:2, 3]
+    geo = []
+    for t in targets:
+        verts = np.asarray(t.mesh.vertices, dtype=np.float64) @ t.world_from_object[:3, :3].T
+        verts = verts + t.world_from_object[:3, 3]
+        geo.append((verts, verts.mean(axis=0)))
+    order = sorted(range(len(targets)), key=lambda k: -float(geo[k][0][:, 2].max()))
+    angles = np.arange(8) * (np.pi / 4.0)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(8)])
+    for k in order:
+        verts, c = geo[k]
+        pref = bin_xy - c[:2]
+        pref = pref / max(float(np.linalg.norm(pref)), 1e-9)
+        for j, (_, cj) in enumerate(geo):
+            d = c[:2] - cj[:2]
+            dist = float(np.linalg.norm(d))
+            if j != k and 1e-6 < dist < 0.12:
+                pref = pref + d / dist
+        norm = max(float(np.linalg.norm(pref)), 1e-9)
+        ranked = [
+            m for m in sorted(range(8), key=lambda m: -float(dirs[m, :2] @ pref)) if dirs[m, :2] @ pref > -0.2 * norm
+        ]
+        low, high = float(verts[:, 2].min()), float(verts[:, 2].max())
+        # jaw tips at a third of the part's height (slide it), else at three quarters (tip it over)
+        heights = [max(floor_z + 0.006, low + (high - low) * f) for f in (1.0 / 3.0, 0.75)]
+        for m, tip_z in ((m, h) for h in heights for m in ranked):
+            d = dirs[m]
+            back = float(c @ d - (verts @ d).min())
+            start = np.eye(4)
+            x = np.array([-d[1], d[0], 0.0])
+            z = np.array([0.0, 0.0, -1.0])
+            start[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+            start[:3, 3] = [*(c[:2] - d[:2] * (back + half_width + 0.01)), tip_z + tip]
+            descent = [start.copy() for _ in range(4)]
+            for n, lift in enumerate((0.0, 0.02, 0.05, 0.08)):
+                descent[n][2, 3] += lift
+            if any(world.check_tool(p, 0.0) is not None for p in descent):
+                continue
+            along = []
+            for s in np.linspace(0.0, push_m, 6)[1:]:
+                p = start.copy()
+                p[:3, 3] += d * s
+                along.append(p)
+            if any(world.check_tool(p, 0.0, skip=("object", "clutter")) is not None for p in along):
+                continue
+            return start, d * push_m
+    return None
+
+
 def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
     from normpos_grasp.planning.plan import PlanOptions, plan_pick
@@ -353,7 +446,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     poses = np.array([cell_from_scene @ p for p in layout.world_from_object]).reshape(-1, 4, 4)
     statics = tuple((name, cell_from_scene @ pose, np.asarray(size)) for name, pose, size in layout.static_boxes)
     floor_z = float((cell_from_scene @ _floor_pose(layout))[2, 3])
-    plan_options = PlanOptions(pick_unmatched=config.pick_unmatched)
+    plan_options = PlanOptions(pick_unmatched=config.pick_unmatched, evaluation=config.plan_evaluation)
     physics_opts = replace(config.physics, lift_to_z_m=float(cell.entry_z) + config.physics.approach_m)
     samples = setup.samples
     n_start = len(templates)
@@ -365,22 +458,55 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     max_picks = 3 * n_start + 3
     while templates and pick < max_picks and failures < config.max_consecutive_failures:
         t0 = time.perf_counter()
-        current = replace(layout, templates=tuple(templates), world_from_object=poses, static_boxes=statics)
-        captures = fitted = reused = 0
-        for capture in range(config.perception_retries + 1):
-            # a retry captures a fresh frame and fits everything anew (the kept fits led to no grasp)
-            last = previous if config.reuse_fits and capture == 0 else None
+        captures = fitted = reused = nudges = hits = 0
+        retries_left, nudges_left = config.perception_retries, config.max_nudges
+        last = previous if config.reuse_fits else None
+        while True:
+            current = replace(layout, templates=tuple(templates), world_from_object=poses, static_boxes=statics)
             seen = _perceive(setup, config, current, rng, scene_index, im_id, last)
             im_id += 1
             captures += 1
             fitted += seen.fitted
             reused += seen.reused
             plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options)
+            if plan.status != "ok" and config.relaxed_plan:
+                relaxed = replace(plan_options, evaluation=config.relaxed_evaluation)
+                second = plan_pick(seen.fits, seen.normpositions, cell, relaxed)
+                if second.status == "ok":
+                    plan = second
             if plan.status == "ok" and plan.chosen is not None:
                 break
+            nudge = None
+            if nudges_left > 0:
+                nudge = _plan_nudge(plan, seen.fits, seen.normpositions, cell, spec, floor_z, config.nudge_m)
+            if nudge is not None:
+                from normpos_grasp.sim.physics_push import PushOptions, simulate_push
+
+                pushed = simulate_push(
+                    list(zip(templates, poses, strict=True)), statics, spec, nudge[0], nudge[1],
+                    PushOptions(physics=config.physics),
+                )  # fmt: skip
+                nudges_left -= 1
+                nudges += 1
+                hits += int(pushed.outcome == "collision")
+                keep = [j for j in range(len(templates)) if _in_bin(pushed.world_from_objects_final[j], cell, floor_z)]
+                templates = [templates[j] for j in keep]
+                poses = pushed.world_from_objects_final[keep].reshape(-1, 4, 4)
+                last = seen if config.reuse_fits else None  # change detection finds what the push moved
+                if templates:
+                    continue
+                break
+            if retries_left > 0:
+                # a retry captures a fresh frame and fits everything anew (the kept fits led to no grasp)
+                retries_left -= 1
+                last = None
+                continue
+            break
         previous = seen
         frame, instances, fits = seen.frame, seen.instances, seen.fits
-        counts = (captures, fitted, reused)
+        counts = (captures, fitted, reused, nudges, hits)
+        if not templates:  # a push knocked the last parts out of the bin: nothing left to pick
+            break
         pipeline_ms = (time.perf_counter() - t0) * 1e3
         visib = np.asarray(frame.visib_fractions, dtype=np.float64)
         if plan.status != "ok" or plan.chosen is None:
@@ -510,7 +636,7 @@ def _record(
     occlusion: float,
     fit_err: float,
     parts_left: int,
-    counts: tuple[int, int, int],
+    counts: tuple[int, ...],
     pipeline_ms: float,
     physics_ms: float,
     reason: str,
@@ -534,6 +660,8 @@ def _record(
         captures=counts[0],
         fitted=counts[1],
         reused=counts[2],
+        nudges=counts[3],
+        nudge_collisions=counts[4],
         pipeline_ms=float(pipeline_ms),
         physics_ms=float(physics_ms),
     )
