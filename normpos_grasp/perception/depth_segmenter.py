@@ -54,6 +54,8 @@ class DepthSegmenterOptions:
         smooth_depth_m: range sigma of the bilateral filter applied before normals, metres.
         normal_step: normals from central differences over +-normal_step working pixels.
         min_pixels: smallest instance, full-resolution pixels.
+        min_fragment_pixels: smaller pieces between edges are not components of their own but join the nearest one
+            (within 3 working pixels), full-resolution pixels.
         rim_width_m / rim_length_m / rim_elongation: components thinner than rim_width_m and longer than both
             rim_length_m and rim_elongation times their width are taken
             for wall rims or rails and dropped, metres.
@@ -86,7 +88,8 @@ class DepthSegmenterOptions:
     steep_faces: bool = True
     smooth_depth_m: float = 0.01
     normal_step: int = 2
-    min_pixels: int = 150
+    min_pixels: int = 250
+    min_fragment_pixels: int = 150
     rim_width_m: float = 0.016
     rim_length_m: float = 0.12
     rim_elongation: float = 3.0
@@ -577,9 +580,10 @@ class DepthSegmenter:
 
         # 4. components
         min_px = max(1, int(np.ceil(o.min_pixels / (s * s) * 0.5)))
+        frag_px = max(1, int(np.ceil(o.min_fragment_pixels / (s * s) * 0.5)))
         count, lab, stats, _ = cv2.connectedComponentsWithStats(core.astype(np.uint8), connectivity=4)
         keep = np.zeros(count, bool)
-        keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_px
+        keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= frag_px
         lab = np.where(keep[lab], lab, 0).astype(np.int32)
         if not keep.any():
             return np.zeros((h0, w0), np.int32), 0
@@ -597,7 +601,7 @@ class DepthSegmenter:
         if left.any():
             nleft, llab, lstats, _ = cv2.connectedComponentsWithStats(left.astype(np.uint8), connectivity=8)
             big = np.zeros(nleft, bool)
-            big[1:] = lstats[1:, cv2.CC_STAT_AREA] >= min_px
+            big[1:] = lstats[1:, cv2.CC_STAT_AREA] >= frag_px
             if big.any():
                 ids = np.zeros(nleft, np.int32)
                 ids[big] = np.arange(1, int(big.sum()) + 1, dtype=np.int32) + int(lab.max())
