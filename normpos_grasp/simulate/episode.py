@@ -16,6 +16,7 @@ something), 'physics_drop' (missed, dropped or slipped).
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field, replace
@@ -350,8 +351,9 @@ def _plan_nudge(
     """A push from the perceived scene only (fits and measured points, never the true poses): for the perceived
     objects, highest first, and horizontal directions ranked towards the bin centre and away from the nearest
     neighbours, the closed gripper's start pose beside the object's far side (jaw tips at a third of its height,
-    at least 6 mm above the floor; then at three quarters, tipping it over) must be clear of everything from 8 cm
-    above down to the start, and the hand must stay clear of the cell over the push.
+    at least 6 mm above the floor; then at three quarters in any direction, tipping it over) must be clear of
+    everything from 8 cm above down to the start (jaws closing across or along the push), and the hand must stay
+    clear of the cell over the push (`push_m`, else half of it).
     Returns (world_from_tcp (4, 4), push (3,)) or None."""
     from normpos_grasp.planning.arm import ArmModel
     from normpos_grasp.planning.plan import PlanOptions, build_world
@@ -391,27 +393,31 @@ def _plan_nudge(
         low, high = float(verts[:, 2].min()), float(verts[:, 2].max())
         # jaw tips at a third of the part's height (slide it), else at three quarters (tip it over)
         heights = [max(floor_z + 0.006, low + (high - low) * f) for f in (1.0 / 3.0, 0.75)]
-        for m, tip_z in ((m, h) for h in heights for m in ranked):
+        everywhere = sorted(range(8), key=lambda m: -float(dirs[m, :2] @ pref))  # tipping over: any way it falls
+        tries = [(m, heights[0]) for m in ranked] + [(m, heights[1]) for m in everywhere]
+        for (m, tip_z), across in itertools.product(tries, (True, False)):
             d = dirs[m]
             back = float(c @ d - (verts @ d).min())
-            start = np.eye(4)
-            x = np.array([-d[1], d[0], 0.0])
+            # jaws closing across the push (a 4 cm wide pusher) or along it (the palm's long side along the push)
+            x = np.array([-d[1], d[0], 0.0]) if across else d.copy()
+            reach = half_width if across else spec.finger_thickness_m
             z = np.array([0.0, 0.0, -1.0])
+            start = np.eye(4)
             start[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-            start[:3, 3] = [*(c[:2] - d[:2] * (back + half_width + 0.01)), tip_z + tip]
+            start[:3, 3] = [*(c[:2] - d[:2] * (back + reach + 0.01)), tip_z + tip]
             descent = [start.copy() for _ in range(4)]
             for n, lift in enumerate((0.0, 0.02, 0.05, 0.08)):
                 descent[n][2, 3] += lift
             if any(world.check_tool(p, 0.0) is not None for p in descent):
                 continue
-            along = []
-            for s in np.linspace(0.0, push_m, 6)[1:]:
-                p = start.copy()
-                p[:3, 3] += d * s
-                along.append(p)
-            if any(world.check_tool(p, 0.0, skip=("object", "clutter")) is not None for p in along):
-                continue
-            return start, d * push_m
+            for dist in (push_m, push_m / 2.0):
+                along = []
+                for s in np.linspace(0.0, dist, 6)[1:]:
+                    p = start.copy()
+                    p[:3, 3] += d * s
+                    along.append(p)
+                if all(world.check_tool(p, 0.0, skip=("object", "clutter")) is None for p in along):
+                    return start, d * dist
     return None
 
 
