@@ -25,6 +25,7 @@ from normpos_grasp.camera.model import Camera
 from normpos_grasp.errors import FitRejected, InputError, TemplateError
 from normpos_grasp.geometry.transforms import invert_pose
 from normpos_grasp.measure.normpos import NormPosition
+from normpos_grasp.templates import kernels
 from normpos_grasp.templates.control_points import control_point_hypotheses
 from normpos_grasp.templates.features import fpfh, ransac_hypotheses, voxel_downsample
 from normpos_grasp.templates.icp import icp
@@ -654,8 +655,7 @@ def _add_s(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:
     sub = prep.samples[:: max(1, len(prep.samples) // 300)]
     pa = (sub * a.scale - a.object_from_frame[:3, 3]) @ a.object_from_frame[:3, :3]
     pb = (sub * b.scale - b.object_from_frame[:3, 3]) @ b.object_from_frame[:3, :3]
-    d, _ = cKDTree(pb).query(pa)
-    return float(np.mean(d))
+    return float(kernels.mean_closest(np.ascontiguousarray(pa), np.ascontiguousarray(pb)))
 
 
 def _add_sym(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:

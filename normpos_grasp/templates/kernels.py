@@ -6,10 +6,11 @@ GIL so that several objects can be fitted in parallel threads (`fit.fit_many`).
 
 Shared arguments (built once per template in `prepared.PreparedTemplate`):
     samples, normals: (S, 3) float64 template surface points and unit outward normals (object frame, metres).
-    grid: (origin (3,), cell (1,), index (G, G, G) int32, index_bins (6, G, G, G) int32, cand_start (G^3 + 1,),
-        cand_idx (C,) int32): the distance grid (nearest sample per cell, overall and per normal bin; -1 where a
-        bin has no sample) and, for cells near the surface, every sample that can be the exact nearest one of a
-        point in the cell (cand_idx[cand_start[c]:cand_start[c + 1]], c = (i G + j) G + k; empty elsewhere).
+    grid: (origin (3,), cell (1,), cells (G, G, G, 8) int16/int32, cand_start (G^3 + 1,), cand_idx (C,) int32):
+        the distance grid (per cell: nearest sample, then the nearest of each normal bin, -1 where a bin has no
+        sample; one cache line per cell) and, for cells near the surface, every sample that can be the exact
+        nearest one of a point in the cell (cand_idx[cand_start[c]:cand_start[c + 1]], c = (i G + j) G + k;
+        empty elsewhere).
     kd: (dim, split, left, right, start, end, perm, roots): flat arrays of 7 KD-trees over the samples
         (all samples, then one per normal bin; roots (7,) with -1 for an empty bin); leaves hold
         perm[start:end] (sample indices).
@@ -163,11 +164,11 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
     the normal's bin; points outside the grid get none. Exact mode: the exact nearest sample (KD-tree), else the
     exact nearest one of the normal's bin. Written as one loop (per-point helper calls cost more than the work).
     """
-    origin, cellarr, gi, gib, cand_start, cand_idx = grid
+    origin, cellarr, cells, cand_start, cand_idx = grid
     dim, split, left, right, start, end, perm, roots = kd
     cell = cellarr[0]
     o0, o1, o2 = origin[0], origin[1], origin[2]
-    g = gi.shape[0]
+    g = cells.shape[0]
     gf = g - 1.0
     s_last = samples.shape[0] - 1
     for q in range(y.shape[0]):
@@ -180,12 +181,12 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
         i = int(min(max(fi, 0.0), gf)) if fi == fi else 0
         j = int(min(max(fj, 0.0), gf)) if fj == fj else 0
         k = int(min(max(fk, 0.0), gf)) if fk == fk else 0
-        s = int(gi[i, j, k])
+        s = int(cells[i, j, k, 0])
         ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
         if not exact:
             if not ok:
                 b = _normal_bin(n0, n1, n2)
-                s2 = int(gib[b, i, j, k])
+                s2 = int(cells[i, j, k, 1 + b])
                 inside = inside and s2 >= 0
                 s = s2 if s2 >= 0 else s_last
                 ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
@@ -236,7 +237,7 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
                     d2 = np.inf
                     s = 0
                 else:
-                    s2 = int(gib[b, i, j, k])
+                    s2 = int(cells[i, j, k, 1 + b])
                     if s2 >= 0:
                         e0 = y0 - samples[s2, 0]
                         e1 = y1 - samples[s2, 1]
@@ -759,3 +760,74 @@ def nearest_rows(query, data_t, k):  # type: ignore[no-untyped-def]
             out[i, j] = bi
             acc[bi] = np.inf
     return out
+
+
+@njit(cache=True, nogil=True)
+def visible_points(samples, normals, cfo, scale, spacing):  # type: ignore[no-untyped-def]
+    """Camera-frame points pv (V, 3) and normals nv (V, 3) of the visible template samples.
+
+    cfo (4, 4): camera_from_object; samples are scaled by `scale` first; visibility as `visible_mask`.
+    """
+    s = samples.shape[0]
+    pc = np.empty((s, 3))
+    nc = np.empty((s, 3))
+    for i in range(s):
+        for u in range(3):
+            pc[i, u] = (
+                cfo[u, 0] * samples[i, 0] * scale
+                + cfo[u, 1] * samples[i, 1] * scale
+                + cfo[u, 2] * samples[i, 2] * scale
+                + cfo[u, 3]
+            )
+            nc[i, u] = cfo[u, 0] * normals[i, 0] + cfo[u, 1] * normals[i, 1] + cfo[u, 2] * normals[i, 2]
+    vis = visible_mask(pc, nc, spacing * scale)
+    n = 0
+    for i in range(s):
+        if vis[i]:
+            n += 1
+    pv = np.empty((n, 3))
+    nv = np.empty((n, 3))
+    j = 0
+    for i in range(s):
+        if vis[i]:
+            pv[j] = pc[i]
+            nv[j] = nc[i]
+            j += 1
+    return pv, nv
+
+
+@njit(cache=True, nogil=True)
+def project_pinhole(pv, fx, fy, cx, cy):  # type: ignore[no-untyped-def]
+    """(V, 2) int64 pixels (rounded) of camera-frame points pv (V, 3) without distortion; -1 where not finite."""
+    n = pv.shape[0]
+    uv = np.empty((n, 2), dtype=np.int64)
+    for i in range(n):
+        u = np.rint(fx * (pv[i, 0] / pv[i, 2]) + cx)
+        v = np.rint(fy * (pv[i, 1] / pv[i, 2]) + cy)
+        if np.isfinite(u) and np.isfinite(v) and abs(u) < 1e9 and abs(v) < 1e9:
+            uv[i, 0] = int(u)
+            uv[i, 1] = int(v)
+        else:
+            uv[i, 0] = -1
+            uv[i, 1] = -1
+    return uv
+
+
+@njit(cache=True, nogil=True)
+def mean_closest(a, b):  # type: ignore[no-untyped-def]
+    """Mean over the points of a (N, 3) of the distance to the closest point of b (M, 3) (brute force)."""
+    n = a.shape[0]
+    if n == 0 or b.shape[0] == 0:
+        return np.inf
+    acc = 0.0
+    for i in range(n):
+        best = np.inf
+        for j in range(b.shape[0]):
+            e0 = a[i, 0] - b[j, 0]
+            e1 = a[i, 1] - b[j, 1]
+            e2 = a[i, 2] - b[j, 2]
+            dd = e0 * e0 + e1 * e1 + e2 * e2
+            if dd < best:
+                best = dd
+        acc += math.sqrt(best)
+    return acc / n

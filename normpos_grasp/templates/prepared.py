@@ -177,6 +177,10 @@ def _build(template: Template) -> PreparedTemplate:
         bin_trees.append((btree, members))
     from normpos_grasp.templates.kernels import build_kdtrees
 
+    cells = np.full((GRID, GRID, GRID, 8), -1, dtype=np.int16 if N_SAMPLES < 2**15 else np.int32)
+    cells[..., 0] = grid_index
+    cells[..., 1:7] = np.moveaxis(bin_grids, 0, -1)
+
     kd = build_kdtrees(samples, [np.arange(len(samples))] + [m for _, m in bin_trees])
     voxel = diameter / 18.0
     keep = voxel_downsample(samples, voxel)
@@ -200,7 +204,7 @@ def _build(template: Template) -> PreparedTemplate:
         desc=desc,
         desc_tree=cKDTree(desc),
         voxel=voxel,
-        grid=(np.asarray(origin, dtype=np.float64), np.array([cell]), grid_index, bin_grids, cand_start, cand_idx),
+        grid=(np.asarray(origin, dtype=np.float64), np.array([cell]), cells, cand_start, cand_idx),
         kd=kd,
     )
 

@@ -147,15 +147,17 @@ def evaluate(
         camera = depth_m = None
         centre = meas_tree.data.mean(axis=0)
         cff = invert_pose(look_at(viewpoint, centre, up=_any_up(centre - viewpoint)))
-    visible, pc = visible_samples(prep, frame_from_object, scale, cff)
-    n_vis = int(visible.sum())
+    cfo = np.ascontiguousarray(cff @ frame_from_object, dtype=np.float64)
+    pv, nv = kernels.visible_points(prep.samples, prep.normals, cfo, float(scale), prep.spacing)
+    n_vis = len(pv)
     if n_vis == 0:
         return PoseScore(0.0, inlier_ratio, rmse, 0.0, 1.0, 0, 0.0, consistency)
-    pv = pc[visible]
-    nv = (prep.normals[visible]) @ (cff @ frame_from_object)[:3, :3].T
     if camera is not None and depth_m is not None:
-        uv = np.rint(camera.project(pv))
-        uv = np.where(np.isfinite(uv), uv, -1.0).astype(np.int64)
+        if camera.has_distortion:
+            uv = np.rint(camera.project(pv))
+            uv = np.where(np.isfinite(uv) & (np.abs(uv) < 1e9), uv, -1.0).astype(np.int64)
+        else:
+            uv = kernels.project_pinhole(pv, camera.fx, camera.fy, camera.cx, camera.cy)
         n_sup, n_den, n_vio, n_mis, n_ng, n_occ = kernels.depth_evidence(
             pv, nv, uv, np.ascontiguousarray(depth_m, dtype=np.float64), tol, FREE_SPACE_WINDOW_PX
         )
