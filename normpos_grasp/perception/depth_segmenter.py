@@ -43,6 +43,8 @@ class DepthSegmenterOptions:
         min_plane_fraction: a further plane (after the first) is removed only if it holds this fraction of the
             valid pixels; of its inliers only connected regions of at least min_plane_area_m2 (m^2, larger than
             any part face) are removed.
+        support_area_m2: a further plane parallel to the first whose removed regions cover at least this area (m^2;
+            a bin floor, a belt; not a rail top) is a floor: all its inliers and everything behind it are removed.
         plane_normal_deg: a pixel joins a further plane's inlier region only if its normal is within this angle of
             the plane's normal, degrees.
         ransac_iterations: plane hypotheses per RANSAC run; ransac_samples: points scored per hypothesis.
@@ -80,6 +82,7 @@ class DepthSegmenterOptions:
     plane_normal_deg: float = 90.0
     min_plane_fraction: float = 0.05
     min_plane_area_m2: float = 0.012
+    support_area_m2: float = 0.03
     ransac_iterations: int = 64
     ransac_samples: int = 1024
     depth_jump_m: float = 0.004
@@ -401,6 +404,10 @@ class DepthSegmenter:
             if not big[1:].any():
                 break
             removed |= big[cc]
+            if cosang >= 0.95 and area[big].sum() >= o.support_area_m2:
+                # a floor (bin floor above the table, belt): everything on it or behind it goes, also where it shows
+                # through a ring's hole or between parts in small pieces
+                removed |= dist(n, d) < tol_img
             removed_sub = removed.reshape(-1)[sidx]
         return ~removed, n1
 
