@@ -183,3 +183,12 @@ def test_point_term_sums_match_closed_form(fit_scale: bool) -> None:
     a_ref, b_ref = point_to_point_normal_equations(y[None], e[None], w[None], c, fit_scale=fit_scale)
     np.testing.assert_allclose(a[:dof, :dof], a_ref[0], atol=1e-14)
     np.testing.assert_allclose(-b[:dof], -b_ref[0], atol=1e-14)
+
+
+def test_compiled_fpfh_matches_numpy_reference(lib: dict[str, Template]) -> None:
+    from normpos_grasp.templates.features import fpfh, fpfh_reference, voxel_downsample
+
+    prep = prepare(lib["l_bracket"])
+    keep = voxel_downsample(prep.samples, prep.voxel)
+    pts, nrm = prep.samples[keep], prep.normals[keep]
+    np.testing.assert_allclose(fpfh(pts, nrm, prep.voxel * 2.5), fpfh_reference(pts, nrm, prep.voxel * 2.5), atol=1e-12)

@@ -38,6 +38,25 @@ def fpfh(points: FloatArray, normals: FloatArray, radius: float) -> FloatArray:
     idx = idx[:, 1:]
     valid = np.isfinite(dist) & (idx < n)
     idx = np.where(valid, idx, 0)
+    return kernels.fpfh_histograms(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.ascontiguousarray(normals, dtype=np.float64),
+        np.ascontiguousarray(idx, dtype=np.int64),
+        np.ascontiguousarray(np.where(valid, dist, 1.0), dtype=np.float64),
+        np.ascontiguousarray(valid),
+        N_BINS,
+    )
+
+
+def fpfh_reference(points: FloatArray, normals: FloatArray, radius: float) -> FloatArray:
+    """`fpfh` in plain numpy (the reference the compiled kernel is tested against)."""
+    n = len(points)
+    k = min(K_NEIGHBOURS + 1, n)
+    dist, idx = cKDTree(points).query(points, k=k, distance_upper_bound=radius)
+    dist = dist[:, 1:]
+    idx = idx[:, 1:]
+    valid = np.isfinite(dist) & (idx < n)
+    idx = np.where(valid, idx, 0)
     spfh = _spfh(points, normals, idx, valid)
     w = np.where(valid, 1.0 / np.maximum(np.where(valid, dist, 1.0), 1e-9), 0.0)
     cnt = valid.sum(1)
@@ -66,7 +85,9 @@ def _spfh(points: FloatArray, normals: FloatArray, idx: IntArray, valid: np.ndar
     w = np.cross(u, v)
     alpha = np.einsum("nkd,nkd->nk", v, nt)
     phi = np.einsum("nkd,nkd->nk", u, d)
-    theta = np.arctan2(np.einsum("nkd,nkd->nk", w, nt), np.einsum("nkd,nkd->nk", u, nt))
+    # a neighbour normal in the u-v plane has w.n_j = +-0 up to rounding: +0 (theta = +pi), not a coin flip
+    wn = np.einsum("nkd,nkd->nk", w, nt)
+    theta = np.arctan2(np.where(np.abs(wn) < 1e-12, 0.0, wn), np.einsum("nkd,nkd->nk", u, nt))
     b1 = np.clip(((alpha + 1) / 2 * N_BINS).astype(np.int64), 0, N_BINS - 1)
     b2 = np.clip(((phi + 1) / 2 * N_BINS).astype(np.int64), 0, N_BINS - 1)
     b3 = np.clip(((theta + np.pi) / (2 * np.pi) * N_BINS).astype(np.int64), 0, N_BINS - 1)

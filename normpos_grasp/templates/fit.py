@@ -17,6 +17,7 @@ import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -149,11 +150,15 @@ class _Measured:
     pts_score: FloatArray
     nrm_score: FloatArray
     thr_score: FloatArray
-    tree: cKDTree
     viewpoint: FloatArray
     neighbours_score: IntArray
     all_pts: FloatArray = field(repr=False)
     all_nrm: FloatArray = field(repr=False)
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """KD-tree over all measured points (built on first use: only scoring without a depth image needs it)."""
+        return cKDTree(self.all_pts)
 
 
 def fit_template(
@@ -354,7 +359,6 @@ def _prepare_measurement(normpos: NormPosition, opts: FitOptions) -> _Measured:
         pts_score=pts[si],
         nrm_score=nrm[si],
         thr_score=thr_all[si],
-        tree=cKDTree(pts),
         viewpoint=vp,
         neighbours_score=consistency_neighbours(pts[si]),
         all_pts=pts,
@@ -560,7 +564,7 @@ def _evaluate(
         meas.pts_score,
         meas.nrm_score,
         meas.thr_score,
-        meas.tree,
+        meas.tree if ctx is None else None,
         meas.viewpoint,
         camera=ctx.camera if ctx is not None else None,
         depth_m=ctx.depth_m if ctx is not None else None,

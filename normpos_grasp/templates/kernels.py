@@ -831,3 +831,84 @@ def mean_closest(a, b):  # type: ignore[no-untyped-def]
                 best = dd
         acc += math.sqrt(best)
     return acc / n
+
+
+@njit(cache=True, nogil=True)
+def fpfh_histograms(points, normals, idx, dist, valid, n_bins):  # type: ignore[no-untyped-def]
+    """(N, 3 n_bins) FPFH of points (N, 3) with unit normals from their neighbours idx / dist / valid (N, K).
+
+    As `features.fpfh`: per pair (Darboux frame u = n_i, v = u x d, w = u x v) the angles alpha = v.n_j,
+    phi = u.d, theta = atan2(w.n_j, u.n_j) are binned (SPFH, divided by the neighbour count); the FPFH adds the
+    neighbours' SPFH weighted by 1 / distance, and each angle's histogram is normalised to sum 1.
+    """
+    n, k = idx.shape
+    nb3 = 3 * n_bins
+    spfh = np.zeros((n, nb3))
+    cnt = np.zeros(n)
+    for i in range(n):
+        u0, u1, u2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        for kk in range(k):
+            if not valid[i, kk]:
+                continue
+            j = idx[i, kk]
+            cnt[i] += 1.0
+            d0 = points[j, 0] - points[i, 0]
+            d1 = points[j, 1] - points[i, 1]
+            d2 = points[j, 2] - points[i, 2]
+            dn = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if dn < 1e-12:
+                dn = 1.0
+            d0 /= dn
+            d1 /= dn
+            d2 /= dn
+            v0 = u1 * d2 - u2 * d1
+            v1 = u2 * d0 - u0 * d2
+            v2 = u0 * d1 - u1 * d0
+            vn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            if vn < 1e-12:
+                vn = 1.0
+            v0 /= vn
+            v1 /= vn
+            v2 /= vn
+            w0 = u1 * v2 - u2 * v1
+            w1 = u2 * v0 - u0 * v2
+            w2 = u0 * v1 - u1 * v0
+            m0, m1, m2 = normals[j, 0], normals[j, 1], normals[j, 2]
+            alpha = v0 * m0 + v1 * m1 + v2 * m2
+            phi = u0 * d0 + u1 * d1 + u2 * d2
+            wm = w0 * m0 + w1 * m1 + w2 * m2
+            theta = math.atan2(wm if abs(wm) >= 1e-12 else 0.0, u0 * m0 + u1 * m1 + u2 * m2)
+            b1 = min(max(int((alpha + 1) / 2 * n_bins), 0), n_bins - 1)
+            b2 = min(max(int((phi + 1) / 2 * n_bins), 0), n_bins - 1)
+            b3 = min(max(int((theta + np.pi) / (2 * np.pi) * n_bins), 0), n_bins - 1)
+            spfh[i, b1] += 1.0
+            spfh[i, n_bins + b2] += 1.0
+            spfh[i, 2 * n_bins + b3] += 1.0
+        c = max(cnt[i], 1.0)
+        for b in range(nb3):
+            spfh[i, b] /= c
+    out = np.empty((n, nb3))
+    neigh = np.empty(nb3)
+    for i in range(n):
+        neigh[:] = 0.0
+        wsum = 0.0
+        for kk in range(k):
+            if not valid[i, kk]:
+                continue
+            w = 1.0 / max(dist[i, kk], 1e-9)
+            wsum += w
+            j = idx[i, kk]
+            for b in range(nb3):
+                neigh[b] += w * spfh[j, b]
+        c = max(cnt[i], 1.0)
+        wn = max(wsum, 1e-12) / c
+        for b in range(nb3):
+            out[i, b] = spfh[i, b] + neigh[b] / c / wn
+        for a in range(3):
+            s = 0.0
+            for b in range(a * n_bins, (a + 1) * n_bins):
+                s += out[i, b]
+            s = max(s, 1e-12)
+            for b in range(a * n_bins, (a + 1) * n_bins):
+                out[i, b] /= s
+    return out

@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from normpos_grasp.camera.model import Camera
+from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.transforms import invert_pose, look_at
 from normpos_grasp.templates import kernels
 from normpos_grasp.templates.icp import correspond
@@ -115,7 +116,7 @@ def evaluate(
     pts: FloatArray,
     nrm: FloatArray,
     thr: FloatArray,
-    meas_tree: cKDTree,
+    meas_tree: cKDTree | None,
     viewpoint: FloatArray,
     *,
     camera: Camera | None = None,
@@ -128,7 +129,8 @@ def evaluate(
 
     meas_tree: KD-tree over ALL measured points (frame). With camera + depth_m (H, W metres) +
     camera_from_frame, coverage and free space use the depth image (occlusion aware, sees the whole
-    silhouette); without, a virtual camera at `viewpoint` and the measured points themselves.
+    silhouette; meas_tree may be None); without, a virtual camera at `viewpoint` and the measured points
+    themselves (meas_tree required).
     neighbours: `consistency_neighbours(pts)` when precomputed; corr: (P,) residuals and distances of `pts`
     at this pose when precomputed (`score_bounds`).
     """
@@ -144,6 +146,8 @@ def evaluate(
     if camera is not None and depth_m is not None and camera_from_frame is not None:
         cff = camera_from_frame
     else:
+        if meas_tree is None:
+            raise InputError("evaluate without a depth image needs meas_tree (a KD-tree of the measured points)")
         camera = depth_m = None
         centre = meas_tree.data.mean(axis=0)
         cff = invert_pose(look_at(viewpoint, centre, up=_any_up(centre - viewpoint)))
@@ -168,7 +172,7 @@ def evaluate(
         coverage = float(n_sup) / max(n_den, 1)
         fsv = float(n_vio + 0.5 * n_mis) / max(n_ng, 1)
         occ_share = float(n_occ) / n_vis
-    else:
+    elif meas_tree is not None:  # (never None here: checked above)
         grazing = np.abs(np.einsum("ij,ij->i", nv, pv)) < 0.3 * np.linalg.norm(pv, axis=1)
         world_v = pv @ invert_pose(cff)[:3, :3].T + invert_pose(cff)[:3, 3]
         dd, _ = meas_tree.query(world_v, distance_upper_bound=2.0 * tol + prep.spacing * scale)
