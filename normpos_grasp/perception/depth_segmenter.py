@@ -53,7 +53,6 @@ class DepthSegmenterOptions:
         crease_angle_deg: neighbours whose normals differ by more, at a concave crease, are separated, degrees.
         steep_faces: a depth step counts as a discontinuity only by how much it exceeds its neighbouring steps
             (keeps steep faces of one part together); False: by its size alone.
-        smooth_depth_m: range sigma of the bilateral filter applied before normals, metres.
         normal_step: normals from central differences over +-normal_step working pixels.
         min_pixels: smallest instance, full-resolution pixels.
         min_fragment_pixels: smaller pieces between edges are not components of their own but join the nearest one
@@ -71,7 +70,9 @@ class DepthSegmenterOptions:
             upright normals) are removed where pixels within wall_tolerance_m (metres, plus the noise term) of them
             form a connected region at least wall_min_length_m long (metres, longer than any part); 0 turns it off.
         wall_angle_deg / max_wall_fraction: a component is dropped as a wall when more than max_wall_fraction of its
-            pixels have normals more than wall_angle_deg (degrees) from the support plane's normal; 1.0 turns it off.
+            pixels have normals more than wall_angle_deg (degrees) from the support plane's normal and it is at least
+            wall_piece_min_length_m long (metres; a part seen from the side, like a bracket's standing leg, is shorter);
+            max_wall_fraction 1.0 turns it off.
         seed: RNG seed of the RANSAC (a private generator; the global RNG is untouched).
     """
 
@@ -89,7 +90,6 @@ class DepthSegmenterOptions:
     depth_jump_rel: float = 0.003
     crease_angle_deg: float = 35.0
     steep_faces: bool = True
-    smooth_depth_m: float = 0.01
     normal_step: int = 2
     min_pixels: int = 250
     min_fragment_pixels: int = 150
@@ -105,6 +105,7 @@ class DepthSegmenterOptions:
     wall_min_length_m: float = 0.15
     wall_angle_deg: float = 60.0
     max_wall_fraction: float = 0.7
+    wall_piece_min_length_m: float = 0.07
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -505,8 +506,8 @@ class DepthSegmenter:
                 long_ > o.max_extent_m
                 or (short < o.rim_width_m and long_ > max(o.rim_length_m, o.rim_elongation * short))
             )
-            if upright is not None and ok[comp0 + 1]:
-                # a piece made of faces standing upright on the support plane is a wall, not a part
+            if upright is not None and ok[comp0 + 1] and long_ >= o.wall_piece_min_length_m:
+                # a long piece made of faces standing upright on the support plane is a wall, not a part
                 ok[comp0 + 1] = np.count_nonzero(upright[sl][ys, xs]) < o.max_wall_fraction * len(ys)
         return ok
 
