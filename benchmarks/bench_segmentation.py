@@ -12,6 +12,7 @@ over repeats, onnxruntime / numpy limited to 2 threads).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import pickle
 import time
@@ -24,7 +25,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "2")
 import numpy as np
 
 from normpos_grasp.perception.base import Segmenter
-from normpos_grasp.perception.depth_segmenter import DepthSegmenter
+from normpos_grasp.perception.depth_segmenter import DepthSegmenter, DepthSegmenterOptions
 from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
 from normpos_grasp.perception.train.data import Sample, synth_samples
 from normpos_grasp.perception.train.metrics import MatchStats
@@ -90,6 +91,13 @@ def main() -> None:
     parser.add_argument("--skip-model", action="store_true")
     parser.add_argument("--skip-unrefined", action="store_true", help="no rows for the model without mask refinement")
     parser.add_argument("--skip-depth", action="store_true")
+    parser.add_argument(
+        "--depth-option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a DepthSegmenterOptions field for the depth rows, e.g. --depth-option stride=2 (repeatable)",
+    )
     args = parser.parse_args()
     print(f"cpu count {os.cpu_count()}, load average {os.getloadavg()[0]:.1f} (timings are inflated when loaded)")
     sets = {
@@ -104,7 +112,17 @@ def main() -> None:
             if not args.skip_unrefined:
                 report(f"model unrefined / {name}", evaluate(raw, samples), latency(raw, samples, args.repeats), True)
     if not args.skip_depth:
-        depth = DepthSegmenter()
+        fields = {f.name: f.type for f in dataclasses.fields(DepthSegmenterOptions)}
+        overrides: dict[str, object] = {}
+        for item in args.depth_option:
+            name, _, value = item.partition("=")
+            if name not in fields:
+                parser.error(f"--depth-option {item!r}: no DepthSegmenterOptions field {name!r}")
+            kind = str(fields[name])
+            overrides[name] = value.lower() in ("1", "true", "yes") if kind == "bool" else float(value)
+            if kind == "int":
+                overrides[name] = int(value)
+        depth = DepthSegmenter(DepthSegmenterOptions(**overrides))  # type: ignore[arg-type]
         for name, samples in sets.items():
             report(f"depth / {name}", evaluate(depth, samples), latency(depth, samples, args.repeats), False)
 
