@@ -276,6 +276,20 @@ def merge_continuous(
 def fill_enclosed_holes(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """`lab` (h, w) int32 labels with the invalid-depth regions (`valid` False) that are enclosed by one label only
     (dropouts on a part's surface, not shadows beside it) given that label; other invalid pixels become 0."""
+    lab = np.where(valid, lab, 0).astype(np.int32)
+    rows, cols = np.flatnonzero(lab.any(axis=1)), np.flatnonzero(lab.any(axis=0))
+    if len(rows) == 0:
+        return lab
+    # only holes within the labels' bounding box can be enclosed; one pixel of margin
+    y0, y1 = max(rows[0] - 1, 0), min(rows[-1] + 2, lab.shape[0])
+    x0, x1 = max(cols[0] - 1, 0), min(cols[-1] + 2, lab.shape[1])
+    out = lab.copy()
+    out[y0:y1, x0:x1] = _fill_enclosed(lab[y0:y1, x0:x1], valid[y0:y1, x0:x1])
+    return out
+
+
+def _fill_enclosed(lab: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`fill_enclosed_holes` on a crop: holes touching the crop's border are never enclosed."""
     holes = (~valid).astype(np.uint8)
     n, cc = cv2.connectedComponents(holes, connectivity=4)
     lab = np.where(valid, lab, 0).astype(np.int32)
