@@ -135,6 +135,10 @@ def test_cli_registers_simulate() -> None:
     assert args.scenes == 3 and args.workers == 2 and args.ray is None and args.sensor == "d435"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["simulate", "--cell", "c", "--out", "o", "--workers", "2", "--ray", "auto"])
+    args = build_parser().parse_args(
+        ["simulate", "--cell", "c", "--out", "o", "--retries", "0", "--no-reuse-fits", "--no-relaxed-plan"]
+    )
+    assert args.retries == 0 and args.no_reuse_fits and args.no_relaxed_plan and not args.no_pick_unmatched
 
 
 @pytest.mark.slow

@@ -1,11 +1,14 @@
 """One simulated bin-clearing episode: scene -> (render, segment, measure, fit, plan, physics) per pick.
 
 `run_scene(config, scene_index)` composes a settled scene of the default parts in the cell's bin, renders it
-through the cell's camera with the chosen sensor's noise, runs the real pipeline on the noisy frame, validates
-the chosen grasp in MuJoCo against the TRUE part poses, updates the scene from the physics' end state (a held
-part leaves, everything else lies where physics left it) and repeats until the bin is empty, the planner finds
-no feasible grasp, or `max_consecutive_failures` picks in a row failed. Everything is seeded from
-(config.seed, scene_index): the same call gives the same records on any machine and worker layout.
+through the cell's camera with the chosen sensor's noise, runs the real pipeline on the noisy frame (instances
+that change detection finds unchanged since the previous frame keep their fits), validates the chosen grasp in
+MuJoCo against the TRUE part poses, updates the scene from the physics' end state (a held part leaves,
+everything else lies where physics left it) and repeats until the bin is empty, the planner finds no feasible
+grasp, or `max_consecutive_failures` picks in a row failed. Before it gives up on a frame without a feasible
+grasp, the cell plans once more with relaxed margins, nudges a part (a push planned on the perceived scene,
+replayed in physics) and captures a fresh frame. Everything is seeded from (config.seed, scene_index): the
+same call gives the same records on any machine and worker layout.
 
 Failure causes of a pick (first that applies): 'segmentation_miss' (no instance found, or the chosen instance
 covers no true part with IoU >= `match_iou`), 'wrong_fit' (no template fit was accepted, or the physics failed
