@@ -460,8 +460,9 @@ class DepthSegmenter:
                 np.float64
             )
             tol = tol_img.reshape(-1)[idx]
-            sub = rng.integers(0, len(idx), size=min(o.ransac_samples, len(idx)))
-            pair = rng.integers(0, len(idx), size=(o.ransac_iterations, 2))
+            # half the RANSAC budget: a wall hypothesis is two points and the known direction (support normal)
+            sub = rng.integers(0, len(idx), size=min(o.ransac_samples // 2, len(idx)))
+            pair = rng.integers(0, len(idx), size=(max(o.ransac_iterations // 2, 1), 2))
             normals = np.cross(pts[pair[:, 1]] - pts[pair[:, 0]], n1[None, :])
             norm = np.linalg.norm(normals, axis=1)
             good = norm > 1e-6
