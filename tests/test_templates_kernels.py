@@ -192,3 +192,15 @@ def test_compiled_fpfh_matches_numpy_reference(lib: dict[str, Template]) -> None
     keep = voxel_downsample(prep.samples, prep.voxel)
     pts, nrm = prep.samples[keep], prep.normals[keep]
     np.testing.assert_allclose(fpfh(pts, nrm, prep.voxel * 2.5), fpfh_reference(pts, nrm, prep.voxel * 2.5), atol=1e-12)
+
+
+def test_knn_points_match_kd_tree() -> None:
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(8)
+    pts = rng.random((300, 3))
+    idx = kernels.knn_points(pts, 16)
+    ref_d, _ = cKDTree(pts).query(pts, k=16)
+    d = np.linalg.norm(pts[idx] - pts[:, None], axis=-1)
+    np.testing.assert_allclose(d, ref_d, atol=1e-12)
+    assert np.all(idx[:, 0] == np.arange(300))

@@ -152,6 +152,8 @@ class _Measured:
     thr_score: FloatArray
     viewpoint: FloatArray
     neighbours_score: IntArray
+    thr_fit_median: float
+    thr_score_median: float
     all_pts: FloatArray = field(repr=False)
     all_nrm: FloatArray = field(repr=False)
 
@@ -361,6 +363,8 @@ def _prepare_measurement(normpos: NormPosition, opts: FitOptions) -> _Measured:
         thr_score=thr_all[si],
         viewpoint=vp,
         neighbours_score=consistency_neighbours(pts[si]),
+        thr_fit_median=float(np.median(thr_all[fi])),
+        thr_score_median=float(np.median(thr_all[si])),
         all_pts=pts,
         all_nrm=nrm,
     )
@@ -415,6 +419,7 @@ def _fit_candidates(
     if len(poses) == 0:
         return []
     ci = _subsample(len(meas.pts_fit), opts.n_coarse_points, rng)
+    thr_coarse_median = float(np.median(meas.thr_fit[ci]))
 
     def coarse(start: FloatArray, start_scales: FloatArray, keep_n: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Coarse ICP (grid correspondences, fixed scale) of poses on the coarse subsample, pruned to `keep_n`."""
@@ -432,6 +437,7 @@ def _fit_candidates(
             max_corr_start=0.25 * prep.diameter,
             prune_after=opts.coarse_prune_after,
             prune_keep=keep_n,
+            thr_median=thr_coarse_median,
         )
 
     poses, scales, frac = coarse(poses, np.ones(len(poses)), opts.coarse_keep)
@@ -503,9 +509,17 @@ def _refine(
         scale_tolerance=opts.scale_tolerance,
         max_corr_start=0.15 * prep.diameter,
         trim=opts.fine_trim,
+        thr_median=meas.thr_fit_median,
     )
     bound, res, dist = score_bounds(
-        prep, poses, scales, meas.pts_score, meas.nrm_score, meas.thr_score, meas.neighbours_score
+        prep,
+        poses,
+        scales,
+        meas.pts_score,
+        meas.nrm_score,
+        meas.thr_score,
+        meas.neighbours_score,
+        thr_median=meas.thr_score_median,
     )
     out = list(scored)
     best = max((c.score.score for c in out), default=0.0)
@@ -539,7 +553,8 @@ def _with_scale(
         exact=True,
         fit_scale=True,
         scale_tolerance=opts.scale_tolerance,
-        max_corr_start=3.0 * float(np.median(meas.thr_fit)),
+        max_corr_start=3.0 * meas.thr_fit_median,
+        thr_median=meas.thr_fit_median,
     )
     if abs(float(ss[0]) - 1.0) < 0.005:
         return cand
@@ -571,6 +586,7 @@ def _evaluate(
         camera_from_frame=cff,
         neighbours=meas.neighbours_score,
         corr=corr,
+        thr_median=meas.thr_score_median,
     )
     return _Candidate(pose, scale, sc)
 
@@ -620,7 +636,7 @@ def _ransac(prep: PreparedTemplate, meas: _Measured, opts: FitOptions, rng: np.r
         return np.zeros((0, 4, 4))
     mp = meas.all_pts[keep]
     desc = fpfh(mp, meas.all_nrm[keep], prep.voxel * 2.5)
-    tol = max(3.0 * float(np.median(meas.thr_fit)), 0.06 * prep.diameter)
+    tol = max(3.0 * meas.thr_fit_median, 0.06 * prep.diameter)
     poses = ransac_hypotheses(
         mp,
         desc,

@@ -65,6 +65,7 @@ def icp(
     converge_m: float | None = None,
     prune_after: int = 0,
     prune_keep: int = 0,
+    thr_median: float | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Refine (H, 4, 4) `object_from_frame` poses and (H,) scales on (P, 3) points/normals.
 
@@ -79,6 +80,7 @@ def icp(
     prune_after / prune_keep: after `prune_after` iterations only the `prune_keep` hypotheses with the highest
     inlier fraction go on (early rejection of hopeless starting poses; 0 = off). The returned arrays then
     hold only the kept hypotheses.
+    thr_median: median of thr when the caller knows it (saves recomputing it).
     Returns poses, scales and the (H,) inlier fraction at the last iteration.
     The iterations run in the compiled `kernels.icp_run` (GIL released).
     """
@@ -91,7 +93,7 @@ def icp(
     frac = np.zeros(h)
     if h == 0 or iterations <= 0 or len(pts) == 0:
         return poses, scales, frac
-    gate_end = 3.0 * float(np.median(thr))
+    gate_end = 3.0 * (float(np.median(thr)) if thr_median is None else thr_median)
     ratio = (gate_end / max(max_corr_start, gate_end)) ** (1.0 / max(iterations - 1, 1))
     gates = np.empty(iterations)
     gate = max(max_corr_start, gate_end)

@@ -912,3 +912,34 @@ def fpfh_histograms(points, normals, idx, dist, valid, n_bins):  # type: ignore[
             for b in range(a * n_bins, (a + 1) * n_bins):
                 out[i, b] /= s
     return out
+
+
+@njit(cache=True, nogil=True)
+def knn_points(pts, k):  # type: ignore[no-untyped-def]
+    """(N, k) indices of each point's k nearest points of pts (N, 3), itself included, nearest first (brute
+    force: faster than building a KD-tree for a few hundred points)."""
+    n = pts.shape[0]
+    k = min(k, n)
+    out = np.empty((n, k), dtype=np.int64)
+    bd = np.empty(k)
+    bi = np.empty(k, dtype=np.int64)
+    for i in range(n):
+        for j in range(k):
+            bd[j] = np.inf
+            bi[j] = 0
+        for m in range(n):
+            e0 = pts[i, 0] - pts[m, 0]
+            e1 = pts[i, 1] - pts[m, 1]
+            e2 = pts[i, 2] - pts[m, 2]
+            dd = e0 * e0 + e1 * e1 + e2 * e2
+            if dd < bd[k - 1]:
+                j = k - 1
+                while j > 0 and bd[j - 1] > dd:
+                    bd[j] = bd[j - 1]
+                    bi[j] = bi[j - 1]
+                    j -= 1
+                bd[j] = dd
+                bi[j] = m
+        for j in range(k):
+            out[i, j] = bi[j]
+    return out

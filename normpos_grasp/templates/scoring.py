@@ -59,6 +59,7 @@ def score_bounds(
     nrm: FloatArray,
     thr: FloatArray,
     neighbours: IntArray | None = None,
+    thr_median: float | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Upper bounds (H,) of `evaluate`'s score for (H, 4, 4) poses with (H,) scales, from one batched query.
 
@@ -80,7 +81,7 @@ def score_bounds(
         prep.grid,
         prep.kd,
     )
-    tol = float(np.median(thr))
+    tol = float(np.median(thr)) if thr_median is None else thr_median
     bound = np.zeros(h)
     for i in range(h):
         ir, rmse, consistency = _fit_stats(prep, r[i], d[i], float(scales[i]), pts, thr, neighbours)
@@ -124,6 +125,7 @@ def evaluate(
     camera_from_frame: FloatArray | None = None,
     neighbours: IntArray | None = None,
     corr: tuple[FloatArray, FloatArray] | None = None,
+    thr_median: float | None = None,
 ) -> PoseScore:
     """Score one pose. pts/nrm (P, 3): measured points/normals used for inliers; thr (P,) inlier distances.
 
@@ -132,7 +134,7 @@ def evaluate(
     silhouette; meas_tree may be None); without, a virtual camera at `viewpoint` and the measured points
     themselves (meas_tree required).
     neighbours: `consistency_neighbours(pts)` when precomputed; corr: (P,) residuals and distances of `pts`
-    at this pose when precomputed (`score_bounds`).
+    at this pose when precomputed (`score_bounds`); thr_median: median of thr when known.
     """
     if corr is None:
         y = (pts @ object_from_frame[:3, :3].T + object_from_frame[:3, 3]) / scale
@@ -141,8 +143,10 @@ def evaluate(
     else:
         r, d = corr
     inlier_ratio, rmse, consistency = _fit_stats(prep, r, d, scale, pts, thr, neighbours)
-    tol = float(np.median(thr))
-    frame_from_object = invert_pose(object_from_frame)
+    tol = float(np.median(thr)) if thr_median is None else thr_median
+    frame_from_object = np.eye(4)  # rigid inverse
+    frame_from_object[:3, :3] = object_from_frame[:3, :3].T
+    frame_from_object[:3, 3] = -object_from_frame[:3, :3].T @ object_from_frame[:3, 3]
     if camera is not None and depth_m is not None and camera_from_frame is not None:
         cff = camera_from_frame
     else:
@@ -208,9 +212,9 @@ SYSTEMATIC_FLOOR_M = 0.0012
 
 def consistency_neighbours(pts: FloatArray) -> IntArray:
     """(P, k) indices of each point's k = min(16, P) nearest points (itself included), for `evaluate`."""
-    k = min(SMOOTH_K, len(pts))
-    _, idx = cKDTree(pts).query(pts, k=k)
-    return np.asarray(idx, dtype=np.int64).reshape(len(pts), k)
+    if len(pts) == 0:
+        return np.zeros((0, 0), dtype=np.int64)
+    return kernels.knn_points(np.ascontiguousarray(pts, dtype=np.float64), SMOOTH_K)
 
 
 def _consistency(
