@@ -213,3 +213,13 @@ def test_camera_pose_is_not_needed() -> None:
     b = DepthSegmenter().segment(_frame(bare, depth))
     assert len(a) == len(b) == 1
     np.testing.assert_array_equal(a[0].mask, b[0].mask)
+
+
+@pytest.mark.parametrize(("h", "w"), [(1, 1), (3, 5), (8, 8), (12, 40), (61, 47)])
+def test_tiny_frames_do_not_crash(h: int, w: int) -> None:
+    cam = Camera(K=np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]]), width=w, height=h)
+    depth = 0.6 + np.random.default_rng(0).normal(0.0, 0.001, (h, w))
+    depth[h // 3 : 2 * h // 3 + 1, w // 3 : 2 * w // 3 + 1] -= 0.05
+    frame = RGBDFrame(rgb=np.zeros((h, w, 3), np.uint8), depth_m=depth, camera=cam)
+    inst = DepthSegmenter().segment(frame)
+    assert all(i.mask.shape == (h, w) and i.label == "" for i in inst)
