@@ -92,12 +92,6 @@ def test_parts_in_a_bin_seen_at_an_angle_without_the_wall_faces() -> None:
     assert sum(i.mask.sum() for i, f in zip(inst, on_wall, strict=True) if f > 0.5) < 0.01 * walls.sum(), on_wall
 
 
-@pytest.mark.xfail(strict=True, reason="known limit: a rim fragment shorter than rim_length_m stays an instance")
-def test_no_rim_fragment_in_a_bin() -> None:
-    cam, depth, _, _, n_parts = _bin_scene()
-    assert len(DepthSegmenter().segment(_frame(cam, depth))) == n_parts
-
-
 def test_l_bracket_stays_one_part() -> None:
     """An L-bracket (a leg flat on the floor, a leg standing up: a concave inner crease with continuous depth) is one
     part, seen from its inner side and from its end. (From behind the standing leg the flat leg shows beyond an
