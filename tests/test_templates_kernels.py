@@ -204,3 +204,11 @@ def test_knn_points_match_kd_tree() -> None:
     d = np.linalg.norm(pts[idx] - pts[:, None], axis=-1)
     np.testing.assert_allclose(d, ref_d, atol=1e-12)
     assert np.all(idx[:, 0] == np.arange(300))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-1e3, 1e3), min_size=1, max_size=60), st.integers(0, 10_000))
+def test_kth_smallest_matches_sort(values: list[float], seed: int) -> None:
+    arr = np.array(values)
+    k = seed % len(arr)
+    assert kernels._kth_smallest(arr.copy(), len(arr), k) == np.sort(arr)[k]

@@ -299,6 +299,35 @@ def correspond_posed(poses, scales, pts, nrm, exact, samples, normals, grid, kd)
     return r, d
 
 
+@njit(cache=True, nogil=True)
+def _kth_smallest(values, n, k):  # type: ignore[no-untyped-def]
+    """The k-th smallest (0-based) of values[:n] (quickselect on values[:n], which is reordered)."""
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        pivot = values[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                tmp = values[i]
+                values[i] = values[j]
+                values[j] = tmp
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return values[k]
+    return values[k]
+
+
 # -- ICP --------------------------------------------------------------------------------------------------------
 
 
@@ -478,7 +507,7 @@ def icp_run(  # type: ignore[no-untyped-def]
             kth = int(trim * cnt) - 1
             kth = min(max(kth, 0), p - 1)
             if kth < cnt:
-                cut = np.partition(absv[:cnt], kth)[kth]
+                cut = _kth_smallest(absv, cnt, kth)
             else:
                 cut = np.inf
             cut = max(cut, thr_min)
@@ -606,7 +635,11 @@ def visible_mask(pc, nc, spacing_scaled):  # type: ignore[no-untyped-def]
         if facing[i]:
             zf[j] = pc[i, 2]
             j += 1
-    cell = 1.6 * spacing_scaled / np.median(zf)
+    if nf % 2 == 1:
+        med = _kth_smallest(zf, nf, nf // 2)
+    else:
+        med = 0.5 * (_kth_smallest(zf, nf, nf // 2 - 1) + _kth_smallest(zf, nf, nf // 2))
+    cell = 1.6 * spacing_scaled / med
     ui = np.empty(s, dtype=np.int64)
     vi = np.empty(s, dtype=np.int64)
     umin = vmin = 1 << 62
