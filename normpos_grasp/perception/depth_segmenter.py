@@ -371,17 +371,20 @@ class DepthSegmenter:
         ny: np.ndarray,
         nz: np.ndarray,
         fx: float,
-    ) -> tuple[np.ndarray, FloatArray]:
-        """(h, w) bool: valid pixels off the support planes, and the first plane's unit normal (3,). The first
+        planes: list[tuple[FloatArray, float, float, bool]] | None = None,
+        sample_step: int = 2,
+    ) -> tuple[np.ndarray, FloatArray, float]:
+        """(h, w) bool: valid pixels off the support planes; the first plane's unit normal (3,) and offset. The first
         (dominant) plane is removed with everything
         behind it; further planes parallel or perpendicular to it only in connected inlier regions of at least
-        min_plane_area_m2. Planes are fitted on every second working pixel and applied to all."""
+        min_plane_area_m2. Planes are fitted on every `sample_step`-th pixel and applied to all; every removed further
+        plane is appended to `planes` as (normal, offset, tolerance, removes-what-is-behind)."""
         o = self.options
         h, w = zm.shape
         rng = np.random.default_rng(o.seed)
         tol_img = o.plane_tolerance_m + o.plane_noise_factor * 0.0026 * zm * zm
         sub_valid = np.zeros_like(valid)
-        sub_valid[::2, ::2] = valid[::2, ::2]
+        sub_valid[::sample_step, ::sample_step] = valid[::sample_step, ::sample_step]
         sidx = np.flatnonzero(sub_valid)
         pts = np.column_stack([xs_m.reshape(-1)[sidx], ys_m.reshape(-1)[sidx], zm.reshape(-1)[sidx]])
         t_sub = tol_img.reshape(-1)[sidx]
@@ -403,9 +406,19 @@ class DepthSegmenter:
                 break
             n, d, _ = ransac_plane(pts[rest], f_sub[rest], o.ransac_iterations, o.ransac_samples, rng)
             n, d = refine_plane(pts[rest], f_sub[rest], n, d)
+            cosang = abs(float(n @ n1))
+            if cosang >= 0.95:
+                # nearly parallel to the first: taken exactly parallel (a floor above the table, a belt, a rail top),
+                # its offset the mean over its inliers, so that no tilted compromise of two levels is removed
+                prest = pts[rest].astype(np.float64)
+                inl = np.abs(prest @ n + d) < f_sub[rest]
+                if inl.sum() >= 3:
+                    h1 = prest[inl] @ n1
+                    d_par = -float(np.median(h1))
+                    near_par = np.abs(prest @ n1 + d_par) < f_sub[rest]
+                    n, d, cosang = n1, -float(np.mean(prest[near_par] @ n1)) if near_par.any() else d_par, 1.0
             on_plane = (np.abs(dist(n, d)) < tol_img) & ~removed
             frac = np.count_nonzero(on_plane.reshape(-1)[sidx]) / n_sub
-            cosang = abs(float(n @ n1))
             if frac < o.min_plane_fraction or 0.2 < cosang < 0.95:
                 break
             # remove only connected inlier regions larger than any part face (tops of parts at one height are not
@@ -419,12 +432,15 @@ class DepthSegmenter:
             if not big[1:].any():
                 break
             removed |= big[cc]
-            if cosang >= 0.95 and area[big].sum() >= o.support_area_m2:
+            floor = cosang >= 0.95 and area[big].sum() >= o.support_area_m2
+            if floor:
                 # a floor (bin floor above the table, belt): everything on it or behind it goes, also where it shows
                 # through a ring's hole or between parts in small pieces
                 removed |= dist(n, d) < tol_img
+            if planes is not None:
+                planes.append((n, d, o.plane_tolerance_m, floor))
             removed_sub = removed.reshape(-1)[sidx]
-        return ~removed, n1
+        return ~removed, n1, d1
 
     def _remove_walls(
         self,
@@ -437,6 +453,7 @@ class DepthSegmenter:
         nz: np.ndarray,
         fx: float,
         support_n: FloatArray,
+        planes: list[tuple[FloatArray, float, float, bool]] | None = None,
     ) -> np.ndarray:
         """`fg` (h, w) bool without walls: planes perpendicular to the support plane (normal `support_n` (3,)),
         found by RANSAC among the foreground pixels whose normals are upright (more than wall_angle_deg from
@@ -498,6 +515,8 @@ class DepthSegmenter:
                     removed_any = True
             if not removed_any:
                 break
+            if planes is not None:
+                planes.append((n, d, o.wall_tolerance_m, False))
         return fg
 
     def _part_like(
@@ -560,9 +579,31 @@ class DepthSegmenter:
         xb, yb = uu[None, :] * zb, vv[:, None] * zb
 
         # 2. support planes
-        fg, support_n = self._foreground(zm, valid, xs_m, ys_m, nx, ny, nz, fx)
-        if o.max_walls > 0 and fg.any():
-            fg = self._remove_walls(fg, zm, xs_m, ys_m, nx, ny, nz, fx, support_n)
+        # planes and walls are found on every second working pixel (a quarter of the work); the dominant plane is
+        # then applied exactly, the further planes and walls by their upsampled coarse regions
+        c = (slice(None, None, 2), slice(None, None, 2))
+        zc, xc, yc = zm[c], xs_m[c], ys_m[c]
+        nc = (nx[c], ny[c], nz[c])
+        planes: list[tuple[FloatArray, float, float, bool]] = []
+        fg_c, support_n, support_d = self._foreground(zc, valid[c], xc, yc, *nc, fx / 2, planes, 1)
+        if o.max_walls > 0 and fg_c.any():
+            fg_c = self._remove_walls(fg_c, zc, xc, yc, *nc, fx / 2, support_n, planes)
+        noise = o.plane_noise_factor * 0.0026 * zm * zm
+
+        def signed(n: FloatArray, d: float) -> np.ndarray:
+            return (np.float32(n[0]) * xs_m + np.float32(n[1]) * ys_m + np.float32(n[2]) * zm) + np.float32(d)
+
+        fg = valid & ~(signed(support_n, support_d) < o.plane_tolerance_m + noise)
+        extra_c = ~fg_c & fg[c]
+        if extra_c.any() and planes:
+            # near the coarse regions of the further planes and walls, their inliers at working resolution
+            near_c = cv2.dilate(extra_c.astype(np.uint8), np.ones((3, 3), np.uint8))
+            near = cv2.resize(near_c, (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+            hit = np.zeros((h, w), bool)
+            for n, d, tol, behind in planes:
+                dist = signed(n, d)
+                hit |= (dist < tol + noise) if behind else (np.abs(dist) < tol + noise)
+            fg &= ~(near & hit)
         if o.rim_open_m > 0 and fg.any():
             fg = _remove_rims(fg, zm, fx, o.rim_open_m, o.rim_length_m)
 
