@@ -124,9 +124,11 @@ def _dots(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
 def _fit_plane(points: FloatArray) -> tuple[FloatArray, float]:
     """Least-squares plane through (N, 3) points: unit normal n and offset d with n . p + d = 0."""
-    c = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
-    n = vt[2]
+    pts = np.asarray(points, dtype=np.float64)
+    c = pts.mean(axis=0)
+    q = pts - c
+    _, vecs = np.linalg.eigh(q.T @ q)  # 3x3 scatter matrix: its smallest eigenvector is the normal
+    n = vecs[:, 0]
     return n, -float(n @ c)
 
 
@@ -163,16 +165,16 @@ def ransac_plane(
 def refine_plane(
     points: np.ndarray, tolerance: np.ndarray, n: FloatArray, d: float, rounds: int = 2
 ) -> tuple[FloatArray, float]:
-    """Least-squares refit of plane (n, d) on all of the (N, 3) `points` within `tolerance` (N,) metres of it,
-    `rounds` times; the normal keeps its orientation towards the camera origin."""
+    """Least-squares refit of plane (n, d) on the (N, 3) `points` within `tolerance` (N,) metres of it (on an even
+    subset of at most 6000 points), `rounds` times; the normal keeps its orientation towards the camera origin."""
+    step = len(points) // 6000 + 1
+    pts = np.asarray(points[::step], dtype=np.float64)
+    tol = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (len(points),))[::step]
     for _ in range(rounds):
-        inl = np.abs(points @ n + d) < tolerance
+        inl = np.abs(pts[:, 0] * n[0] + pts[:, 1] * n[1] + pts[:, 2] * n[2] + d) < tol
         if inl.sum() < 3:
             break
-        sub = points[inl]
-        if len(sub) > 6000:
-            sub = sub[:: len(sub) // 6000 + 1]
-        n, d = _fit_plane(sub.astype(np.float64))
+        n, d = _fit_plane(pts[inl])
         if d < 0:
             n, d = -n, -d
     return n, d
