@@ -1,15 +1,17 @@
-"""Model-free instance segmentation from depth: remove support planes, cut at depth jumps and concave creases.
+"""Model-free instance segmentation from depth: remove support planes and walls, cut at depth jumps and concave
+creases, merge pieces across continuous boundaries.
 
 Steps, at a reduced resolution (every `stride`-th pixel) for speed, masks upsampled at the end:
-1. back-project the (median-filtered) depth to camera points and estimate normals from smoothed points;
-2. RANSAC the dominant plane (table or bin floor) and remove it together with everything behind it; then
-   remove further large planes parallel to it (bin floor above the table, belt) or perpendicular to it (bin walls);
-3. mark edges: depth discontinuities between neighbours, and normal changes at concave creases (two parts meeting:
-   (n_i - n_j) . (p_i - p_j) < 0; convex edges inside one part, like a cube's rim, are not cut);
-4. connected components of the remaining pixels, edge pixels given to the nearest component, size filters
-   (too small: noise; long and thin: a wall rim; too large: static structure).
-Labels are '' (assigned later by template fitting); score is the fraction of the component's pixels that are
-not edge pixels.
+1. median-filtered depth; normals from box-smoothed depth by the pinhole formula (one-sided next to depth jumps);
+2. RANSAC the dominant plane (table, bin floor, belt) and remove it with everything behind it; further large planes
+   parallel to it (a bin floor above the table, a belt) and walls (planes perpendicular to it, RANSAC on the pixels
+   with upright normals, regions longer than any part) are removed too; rims and rails by a morphological opening;
+3. mark edges: depth jumps relative to range, and concave creases ((n_i - n_j) . (p_i - p_j) < 0; convex edges
+   inside one part, like a cube's rim, are not cut);
+4. connected components, edge pixels given to the nearest one, leftover foreground as components of its own; merge
+   of touching components across boundaries mostly free of depth jumps up to the size of the largest part (an
+   L-bracket's legs); size, rim and wall filters; dropouts enclosed by one instance join it.
+Labels are '' (assigned later by template fitting); scores are 1.0. See docs/segmentation.md.
 """
 
 from __future__ import annotations
