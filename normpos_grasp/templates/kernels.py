@@ -164,7 +164,7 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
     the normal's bin; points outside the grid get none. Exact mode: the exact nearest sample (KD-tree), else the
     exact nearest one of the normal's bin. Written as one loop (per-point helper calls cost more than the work).
     """
-    origin, cellarr, cells, cand_start, cand_idx = grid
+    origin, cellarr, cells, cand_start, cand_idx, cand_reach, sample_bin = grid
     dim, split, left, right, start, end, perm, roots = kd
     cell = cellarr[0]
     o0, o1, o2 = origin[0], origin[1], origin[2]
@@ -196,7 +196,11 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
             d[q] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) if (inside and ok) else np.inf
         else:
             c = (i * g + j) * g + k
-            if inside and cand_start[c + 1] > cand_start[c]:
+            qb = _normal_bin(n0, n1, n2)
+            bin_d2 = np.inf  # nearest candidate of the normal's bin, exact when within the cell's reach
+            bin_s = -1
+            listed = inside and cand_start[c + 1] > cand_start[c]
+            if listed:
                 d2 = np.inf
                 for m in range(cand_start[c], cand_start[c + 1]):
                     sm = cand_idx[m]
@@ -207,6 +211,9 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
                     if dm < d2:
                         d2 = dm
                         s = sm
+                    if dm < bin_d2 and sample_bin[sm] == qb:
+                        bin_d2 = dm
+                        bin_s = sm
             else:
                 e0 = y0 - samples[s, 0]
                 e1 = y1 - samples[s, 1]
@@ -231,9 +238,12 @@ def _correspond_block(y, ny, exact, samples, normals, grid, kd, stack_n, stack_b
                 )
             ok = normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS
             if not ok:
-                b = _normal_bin(n0, n1, n2)
+                b = qb
                 root = roots[1 + b]
-                if root < 0:
+                if listed and bin_s >= 0 and bin_d2 <= cand_reach[c] * cand_reach[c]:
+                    d2 = bin_d2
+                    s = bin_s
+                elif root < 0:
                     d2 = np.inf
                     s = 0
                 else:

@@ -163,6 +163,9 @@ def _build(template: Template) -> PreparedTemplate:
     cand_start = np.zeros(GRID**3 + 1, dtype=np.int64)
     np.cumsum(counts, out=cand_start[1:])
     cand_idx = np.concatenate([np.asarray(b, dtype=np.int32) for b in balls]) if len(near) else np.zeros(0, np.int32)
+    # a candidate within d_c + h of a point in the cell is closer than every sample off the list
+    cand_reach = np.zeros(GRID**3)
+    cand_reach[near] = gdist[near] + 0.5 * np.sqrt(3.0) * cell
     sbins = normal_bins(normals)
     bin_grids = np.full((6, GRID, GRID, GRID), -1, dtype=np.int32)
     bin_trees: list[tuple[cKDTree | None, IntArray]] = []
@@ -204,7 +207,15 @@ def _build(template: Template) -> PreparedTemplate:
         desc=desc,
         desc_tree=cKDTree(desc),
         voxel=voxel,
-        grid=(np.asarray(origin, dtype=np.float64), np.array([cell]), cells, cand_start, cand_idx),
+        grid=(
+            np.asarray(origin, dtype=np.float64),
+            np.array([cell]),
+            cells,
+            cand_start,
+            cand_idx,
+            cand_reach,
+            sbins.astype(np.int64),
+        ),
         kd=kd,
     )
 
