@@ -163,9 +163,6 @@ def _build(template: Template) -> PreparedTemplate:
     cand_start = np.zeros(GRID**3 + 1, dtype=np.int64)
     np.cumsum(counts, out=cand_start[1:])
     cand_idx = np.concatenate([np.asarray(b, dtype=np.int32) for b in balls]) if len(near) else np.zeros(0, np.int32)
-    # a candidate within d_c + h of a point in the cell is closer than every sample off the list
-    cand_reach = np.zeros(GRID**3)
-    cand_reach[near] = gdist[near] + 0.5 * np.sqrt(3.0) * cell
     sbins = normal_bins(normals)
     bin_grids = np.full((6, GRID, GRID, GRID), -1, dtype=np.int32)
     bin_trees: list[tuple[cKDTree | None, IntArray]] = []
@@ -209,11 +206,11 @@ def _build(template: Template) -> PreparedTemplate:
         voxel=voxel,
         grid=(
             np.asarray(origin, dtype=np.float64),
-            np.array([cell]),
+            np.array([cell, pad]),
             cells,
             cand_start,
             cand_idx,
-            cand_reach,
+            np.asarray(gdist, dtype=np.float64),
             sbins.astype(np.int64),
         ),
         kd=kd,

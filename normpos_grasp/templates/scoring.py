@@ -76,6 +76,8 @@ def score_bounds(
         np.ascontiguousarray(pts, dtype=np.float64),
         np.ascontiguousarray(nrm, dtype=np.float64),
         True,
+        # beyond this no point counts as near in `_fit_stats` (see there), so farther distances may be inf
+        max(3.0 * float(np.max(thr)) / float(np.min(scales)), 2.0 * prep.spacing) * 1.001,
         prep.samples,
         prep.normals,
         prep.grid,
