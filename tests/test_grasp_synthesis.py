@@ -95,10 +95,7 @@ def test_cylinder_sphere_plate_schemes() -> None:
     nominal = [x for x in across if "_s" not in x.id and "_t" not in x.id]
     assert len(nominal) == 4 and all(abs(x.object_from_tcp[2, 2]) == pytest.approx(1.0) for x in nominal)
     assert sorted(round(x.opening_m, 4) for x in nominal) == pytest.approx([0.08, 0.08, 0.1, 0.1])
-    # tilted copies lean about the closing axis (the jaws stay on the same rims): closing axis unchanged
-    tilted = [x for x in across if "_t" in x.id]
-    assert tilted and all(abs(x.object_from_tcp[2, 2]) == pytest.approx(np.cos(0.35)) for x in tilted)
-    assert all(abs(x.object_from_tcp[2, 0]) < 1e-9 for x in tilted)
+    assert all(abs(x.object_from_tcp[2, 2]) == pytest.approx(1.0) for x in across)  # never tilted: too thin
     # slid copies a quarter of the side along the jaw width off centre (80 mm side: 20 mm, 60 mm side: 15 mm)
     slid = [x for x in across if x.id.endswith(("_s1", "_s2"))]
     offsets = {round(float(np.linalg.norm(x.object_from_tcp[:2, 3])), 6) for x in slid}

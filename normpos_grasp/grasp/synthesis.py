@@ -29,10 +29,10 @@ class SynthesisOptions:
     antipodal_samples: surface samples for irregular parts. approach_m / retreat_m: straight-line lengths, m.
     seed: RNG seed for surface sampling (results are reproducible). finger_tip_m: how far the jaw tips reach past
     the TCP along the approach, m (set from the tool, so grasps do not push the tips through the part's far side).
-    tilt_angles_rad: box (and flat plate) pinches are also offered tilted by +- each angle about the closing axis
-    (the jaws stay on the same faces; the hand leans away from a wall or a neighbour), rad. slide_min_m: a box (or
-    plate) side at least this long along the jaw's width direction also gets pinches a quarter of its length off
-    centre on both sides, m.
+    tilt_angles_rad: box pinches are also offered tilted by +- each angle about the closing axis (the jaws stay on
+    the same faces; the hand leans away from a wall or a neighbour), rad. slide_min_m: a box (or flat plate) side
+    at least this long along the jaw's width direction also gets pinches a quarter of its length off centre on
+    both sides, m.
     """
 
     clearance_m: float = 0.01
@@ -359,8 +359,8 @@ def _plate(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
             )
     # a plate lying on its face: pinch across its width or length from above / below (the tips reach down the
     # rim; the planner raises them off the surface underneath)
-    # Like box pinches, these are also offered slid along the jaw width (long sides) and tilted about the closing
-    # axis (the jaws stay on the same rims; the palm leans away from a wall or a neighbour).
+    # Like box pinches, these are also offered slid along the jaw width (long sides). Not tilted: on a part this
+    # thin, a tilted pinch leaves the jaw tips too little rim (physics: the plate slips out or is missed).
     depth = o.depth(float(ext[n_idx]))
     for e_idx in (a_idx, b_idx):
         w_idx = b_idx if e_idx == a_idx else a_idx
@@ -369,24 +369,10 @@ def _plate(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
             approach = -s * normal
             for n_slide, slide in enumerate(slides):
                 pos = c + s * normal * (ext[n_idx] / 2.0 - depth) + rot[:, w_idx] * slide
-                base = tcp_frame(approach, rot[:, e_idx], pos)
                 gid = f"plate_across_{e_idx}{'+' if s > 0 else '-'}" + (f"_s{n_slide}" if n_slide else "")
                 quality = 0.6 - (0.1 if n_slide else 0.0)
-                out.append(_g(gid, "parallel", base, ext[e_idx] + 2 * o.clearance_m, quality, o))
-                for ang in o.tilt_angles_rad:
-                    for sign in (1.0, -1.0):
-                        tilted = base.copy()
-                        tilted[:3, :3] = base[:3, :3] @ _rot_x(sign * ang)
-                        out.append(
-                            _g(
-                                f"{gid}_t{'+' if sign > 0 else '-'}{np.rad2deg(ang):.0f}",
-                                "parallel",
-                                tilted,
-                                ext[e_idx] + 2 * o.clearance_m,
-                                quality - 0.1 * ang,
-                                o,
-                            )
-                        )
+                pose = tcp_frame(approach, rot[:, e_idx], pos)
+                out.append(_g(gid, "parallel", pose, ext[e_idx] + 2 * o.clearance_m, quality, o))
     return out
 
 
