@@ -18,6 +18,7 @@ from normpos_grasp.perception.train.data import (
     cell_samples,
     frame_samples,
     pack_sample,
+    pile_samples,
     read_shards,
     synth_samples,
 )
@@ -58,6 +59,14 @@ def test_cell_and_frame_shards(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_pile_samples_are_reproducible_dense_piles() -> None:
+    a = pile_samples(400123, views=1)
+    b = pile_samples(400123, views=1)
+    assert len(a) == 1 and len(a[0].instances) >= 3
+    assert np.array_equal(a[0].frame.depth_m, b[0].frame.depth_m)
+    assert [i.label for i in a[0].instances] == [i.label for i in b[0].instances]
+
+
 def test_train_two_steps_and_decode(tmp_path: Path) -> None:
     data = tmp_path / "data"
     generate_shards(data, range(7, 8), (96, 128), views=1, shard_size=1)

@@ -40,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cell-first-seed", type=int, default=300000, help="seed of the first cell bin")
     p.add_argument("--frame-scenes", type=int, default=0, help="extra generate_frame scenes (1 frame each)")
     p.add_argument("--frame-first-seed", type=int, default=310000, help="seed of the first generate_frame scene")
+    p.add_argument("--pile-scenes", type=int, default=0, help="extra dense-pile scenes (2 views each, pile_samples)")
+    p.add_argument("--pile-first-seed", type=int, default=400000, help="seed of the first dense-pile scene")
     p.add_argument("--steps", type=int, default=3000, help="optimiser steps")
     p.add_argument("--batch", type=int, default=16, help="images per step")
     p.add_argument("--lr", type=float, default=4e-3, help="peak learning rate")
@@ -54,7 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from functools import partial
 
-    from normpos_grasp.perception.train.data import cell_samples, frame_samples
+    from normpos_grasp.perception.train.data import cell_samples, frame_samples, pile_samples
     from normpos_grasp.perception.train.trainer import TrainOptions, generate_sample_shards, generate_shards, train
 
     h, w = args.input_size
@@ -78,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
         seeds = range(args.frame_first_seed, args.frame_first_seed + args.frame_scenes)
         with tqdm(total=len(seeds), desc="rendering frames", unit="scene") as bar:
             generate_sample_shards(Path(data), "frame", seeds, (h, w), frame_samples, progress=bar.update)
+    if args.pile_scenes > 0:
+        seeds = range(args.pile_first_seed, args.pile_first_seed + args.pile_scenes)
+        with tqdm(total=len(seeds), desc="rendering piles", unit="scene") as bar:
+            generate_sample_shards(Path(data), "pile", seeds, (h, w), pile_samples, progress=bar.update)
     options = TrainOptions(
         input_hw=(h, w),
         steps=args.steps,

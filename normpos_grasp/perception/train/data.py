@@ -85,6 +85,20 @@ def synth_samples(
     return out
 
 
+def pile_samples(seed: int, views: int = 2, sensor: str = "d435") -> list[Sample]:
+    """`views` views of a dense pile (as the benchmark's 'touching' set, but drawn per seed): 5-14 parts dropped
+    with clutter 0.8-1.0 into 1-2 layers (container as in `synth_samples`)."""
+    rng = np.random.default_rng(seed + 7)
+    return synth_samples(
+        seed,
+        views,
+        sensor,
+        clutter=float(rng.uniform(0.8, 1.0)),
+        stack_layers=int(rng.integers(1, 3)),
+        count=int(rng.integers(5, 15)),
+    )
+
+
 def cell_samples(cell: CellConfig, seed: int, sensor: str = "d435") -> list[Sample]:
     """Two views of a bin of a cell (`normpos_grasp.sim.cell_scene`), seen by the cell's own camera as in the demo:
     2-14 parts (drawn from `seed`) dropped into the cell's bin, then the same bin with some parts taken out (as
