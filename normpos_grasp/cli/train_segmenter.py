@@ -40,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--cell-first-seed", type=int, default=300000, help="seed of the first cell bin")
     p.add_argument("--frame-scenes", type=int, default=0, help="extra generate_frame scenes (1 frame each)")
     p.add_argument("--frame-first-seed", type=int, default=310000, help="seed of the first generate_frame scene")
+    p.add_argument("--extra-scenes", type=int, default=0, help="more scenes like --scenes into an existing data folder")
+    p.add_argument("--extra-first-seed", type=int, default=200000, help="seed of the first --extra-scenes scene")
     p.add_argument("--pile-scenes", type=int, default=0, help="extra dense-pile scenes (2 views each, pile_samples)")
     p.add_argument("--pile-first-seed", type=int, default=400000, help="seed of the first dense-pile scene")
     p.add_argument("--steps", type=int, default=3000, help="optimiser steps")
@@ -80,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
         seeds = range(args.frame_first_seed, args.frame_first_seed + args.frame_scenes)
         with tqdm(total=len(seeds), desc="rendering frames", unit="scene") as bar:
             generate_sample_shards(Path(data), "frame", seeds, (h, w), frame_samples, progress=bar.update)
+    if args.extra_scenes > 0:
+        seeds = range(args.extra_first_seed, args.extra_first_seed + args.extra_scenes)
+        with tqdm(total=len(seeds), desc="rendering more scenes", unit="scene") as bar:
+            generate_shards(Path(data), seeds, (h, w), progress=bar.update)
     if args.pile_scenes > 0:
         seeds = range(args.pile_first_seed, args.pile_first_seed + args.pile_scenes)
         with tqdm(total=len(seeds), desc="rendering piles", unit="scene") as bar:
