@@ -127,15 +127,18 @@ def _continuing_label(
     labels: np.ndarray, depth: np.ndarray, ys: np.ndarray, xs: np.ndarray, options: MaskRefineOptions
 ) -> np.ndarray:
     """For the pixels (ys, xs): the label (> 0) of a 4-neighbour whose depth differs by at most the step, else 0."""
+    h, w = labels.shape
     z = depth[ys, xs]
     step = options.edge_step_m + options.edge_step_per_m2 * z * z
-    lab_p = np.pad(labels, 1)  # 0 (no region) outside the window
-    dep_p = np.pad(depth, 1)
     out = np.zeros(len(ys), labels.dtype)
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        ny, nx = ys + (1 + dy), xs + (1 + dx)
-        lab = lab_p[ny, nx]
-        ok = (out == 0) & (lab > 0) & (np.abs(dep_p[ny, nx] - z) <= step)
+    for ny, nx in (
+        (ys, np.minimum(xs + 1, w - 1)),
+        (ys, np.maximum(xs - 1, 0)),
+        (np.minimum(ys + 1, h - 1), xs),
+        (np.maximum(ys - 1, 0), xs),
+    ):
+        lab = labels[ny, nx]  # at the window border this is the pixel itself: an edge pixel, label 0
+        ok = (out == 0) & (lab > 0) & (np.abs(depth[ny, nx] - z) <= step)
         out[ok] = lab[ok]
     return out
 
