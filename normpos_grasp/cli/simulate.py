@@ -26,9 +26,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--count", type=int, default=8, help="parts per scene")
     parser.add_argument(
         "--segmenter",
-        default="gt",
-        choices=("gt", "depth"),
-        help="gt: the rendering's visible masks (ideal segmenter); depth: model-free depth segmenter",
+        default="model",
+        choices=("model", "gt", "depth"),
+        help="model: the bundled RGB-D model (the product's pipeline); gt: the rendering's visible masks "
+        "(ideal segmenter); depth: model-free depth segmenter",
     )
     parser.add_argument("--gripper", default="", help="physics gripper override (2f85, 2f140, suction)")
     parser.add_argument("--resolution", default="640x480", help="image size WxH in pixels")

@@ -38,7 +38,7 @@ from normpos_grasp.typing import FloatArray
 logger = logging.getLogger(__name__)
 
 CAUSES = ("segmentation_miss", "wrong_fit", "no_feasible_grasp", "physics_drop", "collision")
-SEGMENTERS = ("gt", "depth")
+SEGMENTERS = ("model", "gt", "depth")
 
 
 @dataclass(frozen=True)
@@ -47,8 +47,9 @@ class SimulationConfig:
 
     cell_path: cell YAML. sensor: sensor model name ('d435', 'ideal', ...). seed: batch seed.
     parts: part names drawn into each scene (empty = the whole default library). parts_per_scene: how many.
-    segmenter: 'gt' (the rendering's visible masks with labels: an ideal segmenter) or 'depth' (model-free
-    depth segmentation, labels left to the template fit). renderer: 'auto', 'mujoco' or 'raycast'.
+    segmenter: 'model' (the bundled RGB-D segmentation model: the product's pipeline), 'gt' (the rendering's
+    visible masks with labels: an ideal segmenter) or 'depth' (model-free depth segmentation, labels left to the
+    template fit). renderer: 'auto', 'mujoco' or 'raycast'.
     match_iou: an instance matches a true part at this mask IoU. wrong_fit_m: a fitted pose whose model points
     lie this far (mean, symmetric closest point) from the true ones counts as a wrong fit, metres.
     max_consecutive_failures: an episode stops after this many failed picks in a row.
@@ -75,7 +76,7 @@ class SimulationConfig:
     seed: int = 0
     parts: tuple[str, ...] = ()
     parts_per_scene: int = 8
-    segmenter: str = "gt"
+    segmenter: str = "model"
     renderer: str = "auto"
     match_iou: float = 0.5
     wrong_fit_m: float = 0.005
@@ -224,6 +225,17 @@ class _Setup:
 
 
 _SETUPS: dict[tuple[Any, ...], _Setup] = {}
+_SEGMENTERS: dict[str, Any] = {}
+
+
+def _segmenter(kind: str) -> Any:
+    """The process's segmenter of `kind` ('model' or 'depth'), created once (the ONNX session is reused)."""
+    hit = _SEGMENTERS.get(kind)
+    if hit is None:
+        from normpos_grasp.pipeline import make_segmenter
+
+        hit = _SEGMENTERS[kind] = make_segmenter(kind)
+    return hit
 
 
 def _setup(config: SimulationConfig) -> _Setup:
@@ -311,9 +323,7 @@ def _perceive(
     if config.segmenter == "gt":
         instances = list(frame.instances)
     else:
-        from normpos_grasp.perception.depth_segmenter import DepthSegmenter
-
-        instances = DepthSegmenter().segment(frame.frame)
+        instances = _segmenter(config.segmenter).segment(frame.frame)
     normpositions = measure_instances(frame.frame, instances, MeasureOptions(skip_failed=True))
     context = FitContext(frame.frame.camera, frame.frame.depth_m)
     masks = {i.instance_id: i.mask for i in instances}
