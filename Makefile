@@ -10,6 +10,7 @@ $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m normpos_grasp.templates.warmup  # compile the fit kernels once (numba cache)
 	touch $@
 
 install: $(BIN)/.installed

@@ -1,0 +1,53 @@
+"""Build the fit's compiled kernels ahead of use (`make install` runs it once after installing).
+
+The kernels (`templates.kernels`) are compiled by numba on first use and cached on disk; a fresh install would
+otherwise pay ~25-35 s of compilation inside its first fit (the demo's first pick). `warm_up` fits a small ray-cast
+box through every code path the pipeline uses (with the depth image, without it, and with an unknown label), so
+every kernel signature is compiled and written to the cache.
+
+    python -m normpos_grasp.templates.warmup
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from normpos_grasp.camera.model import Camera
+from normpos_grasp.geometry.transforms import make_pose, random_rotation
+from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many
+from normpos_grasp.templates.model import Symmetry, Template, TemplateFit
+from normpos_grasp.templates.synthetic import render_views
+
+logger = logging.getLogger(__name__)
+
+
+def warm_up() -> tuple[float, list[TemplateFit]]:
+    """Fit a ray-cast 60 x 40 x 20 mm box three ways; returns (seconds taken, the fits: labelled with the depth
+    image, labelled without it, unlabelled with two templates to choose from)."""
+    import trimesh
+
+    t0 = time.perf_counter()
+    flips = Symmetry(discrete=tuple(make_pose(np.diag(d)) for d in ((1.0, -1, -1), (-1.0, 1, -1), (-1.0, -1, 1))))
+    box = Template("warmup_box", "warmup_box", trimesh.creation.box((0.06, 0.04, 0.02)), symmetry=flips, shape="box")
+    bar = Template("warmup_bar", "warmup_bar", trimesh.creation.box((0.12, 0.02, 0.02)), symmetry=flips, shape="box")
+    camera = Camera(np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]]), 640, 480)
+    rng = np.random.default_rng(0)
+    pose = make_pose(random_rotation(rng), [0.01, -0.02, 0.7])
+    view = render_views(camera, [(box, pose)], rng)
+    normpos = view.normpos[0]
+    context = FitContext(camera, view.depth_m)
+    fits = fit_many([normpos], [box], FitOptions(), context, workers=1)
+    fits.append(fit_best(normpos, [box], FitOptions()))
+    fits.append(fit_best(replace(normpos, label=""), [box, bar], FitOptions(), context))
+    seconds = time.perf_counter() - t0
+    logger.info("fit kernels ready in %.1f s", seconds)
+    return seconds, fits
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    warm_up()
