@@ -340,6 +340,23 @@ def collision_pieces(template: Template, options: DecompositionOptions | None = 
     return [("mesh", p.vertices) for p in pieces]
 
 
+def _static_geoms(static_boxes: list[StaticBox] | tuple[StaticBox, ...], friction: float, lowest: float) -> list[str]:
+    """MJCF geoms of the fixed cell boxes (name, world pose (4, 4), full size (3,) m); without any, a floor plane at
+    height `lowest` (m) under the parts."""
+    statics = []
+    sf = f'friction="{friction:.6g} 0.003 0.0001"'
+    for k, (name, pose_in, size_in) in enumerate(static_boxes):
+        pose = check_pose(pose_in, f"static box {name!r} pose", tol=1e-5)
+        size = as_float_array(size_in, f"static box {name!r} size", (3,))
+        statics.append(
+            f'<geom name="static{k}_{_safe(name)}" type="box" size="{_fmt(size / 2.0)}" pos="{_fmt(pose[:3, 3])}" '
+            f'quat="{_fmt(_quat_wxyz(pose[:3, :3]))}" {sf}/>'
+        )
+    if not statics:
+        statics.append(f'<geom name="static_floor" type="plane" size="0 0 1" pos="0 0 {lowest:.12g}" {sf}/>')
+    return statics
+
+
 def _object_body_xml(
     name: str,
     template: Template,
@@ -549,17 +566,7 @@ def validate_grasp(
         lowest = min(lowest, float((np.asarray(tmpl.mesh.vertices) @ pose[:3, :3].T + pose[:3, 3])[:, 2].min()))
         pieces = collision_pieces(tmpl, opts.decomposition)
         bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets))
-    statics = []
-    sf = f'friction="{opts.static_friction:.6g} 0.003 0.0001"'
-    for k, (name, pose_in, size_in) in enumerate(static_boxes):
-        pose = check_pose(pose_in, f"static box {name!r} pose", tol=1e-5)
-        size = as_float_array(size_in, f"static box {name!r} size", (3,))
-        statics.append(
-            f'<geom name="static{k}_{_safe(name)}" type="box" size="{_fmt(size / 2.0)}" pos="{_fmt(pose[:3, 3])}" '
-            f'quat="{_fmt(_quat_wxyz(pose[:3, :3]))}" {sf}/>'
-        )
-    if not statics:
-        statics.append(f'<geom name="static_floor" type="plane" size="0 0 1" pos="0 0 {lowest:.12g}" {sf}/>')
+    statics = _static_geoms(static_boxes, opts.static_friction, lowest)
     pre = w_tcp @ make_pose(translation=[0.0, 0.0, -opts.approach_m])
     opening = min(opening_m, spec.stroke_m) if spec.kind == "parallel" else 0.0
     hand, actuators, exclude = _hand_xml(spec, pre, opening)

@@ -26,7 +26,7 @@ from normpos_grasp.sim.physics import (
     _Monitor,
     _object_body_xml,
     _quat_wxyz,
-    _safe,
+    _static_geoms,
     collision_pieces,
 )
 from normpos_grasp.templates.model import Template
@@ -93,17 +93,7 @@ def simulate_push(
         lowest = min(lowest, float((np.asarray(tmpl.mesh.vertices) @ pose[:3, :3].T + pose[:3, 3])[:, 2].min()))
         pieces = collision_pieces(tmpl, phys.decomposition)
         bodies.append(_object_body_xml(f"part{i}", tmpl, pose, pieces, phys.object_friction, assets))
-    statics = []
-    sf = f'friction="{phys.static_friction:.6g} 0.003 0.0001"'
-    for k, (name, pose_in, size_in) in enumerate(static_boxes):
-        pose = check_pose(pose_in, f"static box {name!r} pose", tol=1e-5)
-        size = as_float_array(size_in, f"static box {name!r} size", (3,))
-        statics.append(
-            f'<geom name="static{k}_{_safe(name)}" type="box" size="{_fmt(size / 2.0)}" pos="{_fmt(pose[:3, 3])}" '
-            f'quat="{_fmt(_quat_wxyz(pose[:3, :3]))}" {sf}/>'
-        )
-    if not statics:
-        statics.append(f'<geom name="static_floor" type="plane" size="0 0 1" pos="0 0 {lowest:.12g}" {sf}/>')
+    statics = _static_geoms(static_boxes, phys.static_friction, lowest)
     pre = w_tcp.copy()
     pre[2, 3] += opts.descend_m
     closed = 1e-3  # jaws (nearly) closed: the fingers form one pusher
