@@ -123,6 +123,19 @@ def _obb(template: Template) -> tuple[FloatArray, FloatArray]:
     return pose, ext
 
 
+def _tilted(gid: str, base: FloatArray, opening: float, quality: float, o: SynthesisOptions) -> list[GraspAnnotation]:
+    """Parallel pinch `base` tilted by +- each of `o.tilt_angles_rad` about its closing axis (x), quality lowered by
+    0.1 per radian; ids `<gid>_t+<deg>` / `<gid>_t-<deg>`."""
+    out = []
+    for ang in o.tilt_angles_rad:
+        for sign in (1.0, -1.0):
+            tilted = base.copy()
+            tilted[:3, :3] = base[:3, :3] @ _rot_x(sign * ang)
+            gid_t = f"{gid}_t{'+' if sign > 0 else '-'}{np.rad2deg(ang):.0f}"
+            out.append(_g(gid_t, "parallel", tilted, opening, quality - 0.1 * ang, o))
+    return out
+
+
 def _g(
     gid: str,
     scheme: str,
@@ -164,20 +177,7 @@ def _box(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
                     gid = f"box_pair_c{i}_a{j}{'+' if s > 0 else '-'}" + (f"_s{n_slide}" if n_slide else "")
                     q = quality - (0.1 if n_slide else 0.0)
                     out.append(_g(gid, "parallel", base, ext[i] + 2 * o.clearance_m, q, o))
-                    for ang in o.tilt_angles_rad:
-                        for sign in (1.0, -1.0):
-                            tilted = base.copy()
-                            tilted[:3, :3] = base[:3, :3] @ _rot_x(sign * ang)
-                            out.append(
-                                _g(
-                                    f"{gid}_t{'+' if sign > 0 else '-'}{np.rad2deg(ang):.0f}",
-                                    "parallel",
-                                    tilted,
-                                    ext[i] + 2 * o.clearance_m,
-                                    q - 0.1 * ang,
-                                    o,
-                                )
-                            )
+                    out.extend(_tilted(gid, base, ext[i] + 2 * o.clearance_m, q, o))
     for j in range(3):
         others = [m for m in range(3) if m != j]
         if min(ext[others]) < o.cup_diameter_m:
@@ -235,20 +235,8 @@ def _cylinder(t: Template, o: SynthesisOptions) -> list[GraspAnnotation]:
             base = tcp_frame(approach, closing, pos)
             gid = f"cyl_side_{k}_h{h_idx}"
             out.append(_g(gid, "parallel", base, 2 * r + 2 * o.clearance_m, 0.9, o, free_axis=None))
-            for ang in o.tilt_angles_rad:  # leaning along the axis: the jaws stay on the same diameter
-                for sign in (1.0, -1.0):
-                    tilted = base.copy()
-                    tilted[:3, :3] = base[:3, :3] @ _rot_x(sign * ang)
-                    out.append(
-                        _g(
-                            f"{gid}_t{'+' if sign > 0 else '-'}{np.rad2deg(ang):.0f}",
-                            "parallel",
-                            tilted,
-                            2 * r + 2 * o.clearance_m,
-                            0.9 - 0.1 * ang,
-                            o,
-                        )
-                    )
+            # leaning along the axis: the jaws stay on the same diameter
+            out.extend(_tilted(gid, base, 2 * r + 2 * o.clearance_m, 0.9, o))
             # across the caps, approached from the side (closing along the axis)
         pos = c - approach * (r - depth)
         out.append(_g(f"cyl_caps_{k}", "parallel", tcp_frame(approach, axis, pos), length + 2 * o.clearance_m, 0.7, o))

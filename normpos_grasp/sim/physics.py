@@ -340,6 +340,35 @@ def collision_pieces(template: Template, options: DecompositionOptions | None = 
     return [("mesh", p.vertices) for p in pieces]
 
 
+def _hand_scene_xml(
+    name: str,
+    timestep_s: float,
+    assets: list[str],
+    world_geoms: list[str],
+    hand: str,
+    world_from_hand: FloatArray,
+    exclude: str,
+    actuators: str,
+    equality: str = "",
+) -> str:
+    """MJCF of a scene with a mocap-welded hand (from `_hand_xml`) starting at `world_from_hand` (4, 4): the shared
+    contact settings, `assets`, the `world_geoms` (static geoms and part bodies), extra `equality` constraints."""
+    pos, quat = _fmt(world_from_hand[:3, 3]), _fmt(_quat_wxyz(world_from_hand[:3, :3]))
+    return (
+        f'<mujoco model="{name}"><compiler angle="radian" boundmass="1e-6" boundinertia="1e-12"/>'
+        f'<option timestep="{timestep_s:.12g}" integrator="implicitfast" cone="elliptic" impratio="10">'
+        '<flag multiccd="enable"/></option>'
+        '<default><geom solref="0.004 1" solimp="0.95 0.99 0.001"/></default>'
+        f"<asset>{''.join(assets)}</asset>"
+        f"<worldbody>{''.join(world_geoms)}{hand}"
+        f'<body name="hand_mocap" mocap="true" pos="{pos}" quat="{quat}"/>'
+        "</worldbody>"
+        '<equality><weld body1="hand" body2="hand_mocap" relpose="0 0 0 1 0 0 0" solref="0.005 1"/>'
+        f"{equality}</equality>"
+        f"<contact>{exclude}</contact><actuator>{actuators}</actuator></mujoco>"
+    )
+
+
 def _static_geoms(static_boxes: list[StaticBox] | tuple[StaticBox, ...], friction: float, lowest: float) -> list[str]:
     """MJCF geoms of the fixed cell boxes (name, world pose (4, 4), full size (3,) m); without any, a floor plane at
     height `lowest` (m) under the parts."""
@@ -575,18 +604,8 @@ def validate_grasp(
         if spec.kind == "suction"
         else ""
     )
-    xml = (
-        '<mujoco model="grasp_check"><compiler angle="radian" boundmass="1e-6" boundinertia="1e-12"/>'
-        f'<option timestep="{opts.timestep_s:.12g}" integrator="implicitfast" cone="elliptic" impratio="10">'
-        '<flag multiccd="enable"/></option>'
-        '<default><geom solref="0.004 1" solimp="0.95 0.99 0.001"/></default>'
-        f"<asset>{''.join(assets)}</asset>"
-        f"<worldbody>{''.join(statics)}{''.join(bodies)}{hand}"
-        f'<body name="hand_mocap" mocap="true" pos="{_fmt(pre[:3, 3])}" quat="{_fmt(_quat_wxyz(pre[:3, :3]))}"/>'
-        "</worldbody>"
-        '<equality><weld body1="hand" body2="hand_mocap" relpose="0 0 0 1 0 0 0" solref="0.005 1"/>'
-        f"{vacuum_eq}</equality>"
-        f"<contact>{exclude}</contact><actuator>{actuators}</actuator></mujoco>"
+    xml = _hand_scene_xml(
+        "grasp_check", opts.timestep_s, assets, statics + bodies, hand, pre, exclude, actuators, vacuum_eq
     )
     try:
         model = mujoco.MjModel.from_xml_string(xml)

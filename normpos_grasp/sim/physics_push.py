@@ -20,7 +20,7 @@ from normpos_grasp.sim.physics import (
     GripperSpec,
     PhysicsOptions,
     StaticBox,
-    _fmt,
+    _hand_scene_xml,
     _hand_xml,
     _min_jerk,
     _Monitor,
@@ -98,18 +98,7 @@ def simulate_push(
     pre[2, 3] += opts.descend_m
     closed = 1e-3  # jaws (nearly) closed: the fingers form one pusher
     hand, actuators, exclude = _hand_xml(gripper, pre, closed)
-    xml = (
-        '<mujoco model="push"><compiler angle="radian" boundmass="1e-6" boundinertia="1e-12"/>'
-        f'<option timestep="{phys.timestep_s:.12g}" integrator="implicitfast" cone="elliptic" impratio="10">'
-        '<flag multiccd="enable"/></option>'
-        '<default><geom solref="0.004 1" solimp="0.95 0.99 0.001"/></default>'
-        f"<asset>{''.join(assets)}</asset>"
-        f"<worldbody>{''.join(statics)}{''.join(bodies)}{hand}"
-        f'<body name="hand_mocap" mocap="true" pos="{_fmt(pre[:3, 3])}" quat="{_fmt(_quat_wxyz(pre[:3, :3]))}"/>'
-        "</worldbody>"
-        '<equality><weld body1="hand" body2="hand_mocap" relpose="0 0 0 1 0 0 0" solref="0.005 1"/></equality>'
-        f"<contact>{exclude}</contact><actuator>{actuators}</actuator></mujoco>"
-    )
+    xml = _hand_scene_xml("push", phys.timestep_s, assets, statics + bodies, hand, pre, exclude, actuators)
     try:
         model = mujoco.MjModel.from_xml_string(xml)
     except ValueError as exc:
