@@ -44,6 +44,15 @@ class CameraMoved(CalibrationError):
         self.report = report
 
 
+class ExtrinsicsError(InputError):
+    """Camera extrinsics that cannot be right (rotation not orthonormal, a reflection, a camera under the floor or
+    implausibly far away); `measured` holds the offending figure (deviation, determinant, height or distance)."""
+
+    def __init__(self, message: str, measured: float | None = None) -> None:
+        super().__init__(message)
+        self.measured = measured
+
+
 class DatasetError(NormposError):
     """A dataset folder (BOP or otherwise) is missing files or holds malformed data."""
 

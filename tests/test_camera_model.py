@@ -57,7 +57,7 @@ def test_bop_entry_round_trip() -> None:
         ({"width": 0}, "image size"),
         ({"distortion": np.zeros(3)}, "coefficients"),
         ({"depth_scale_m": 0.0}, "depth_scale_m"),
-        ({"world_from_camera": np.diag([1.0, 1.0, -1.0, 1.0])}, "proper rotation"),
+        ({"world_from_camera": np.diag([1.0, 1.0, -1.0, 1.0])}, "reflection"),
     ],
 )
 def test_camera_rejects_bad_input(kwargs: dict, message: str) -> None:  # type: ignore[type-arg]

@@ -196,8 +196,8 @@ def _textured_scene(camera_from_plane: np.ndarray, board: bool = False) -> RGBDF
 
 
 def test_static_reference_catches_a_bumped_camera(tmp_path: Path) -> None:
-    # world = plane frame; 6 control points on a textured plate the calibrated camera looks at
-    board_from_camera = look_at([0.2, 0.15, -1.0], [0.2, 0.15, 0.0], up=(0, -1, 0))
+    # world = plate frame (z up); 6 control points on a textured plate the calibrated camera looks down at
+    board_from_camera = look_at([0.2, 0.15, 1.0], [0.2, 0.15, 0.0], up=(0, 1, 0))
     world_pts = np.array(
         [[0.06, 0.05, 0], [0.2, 0.04, 0], [0.33, 0.06, 0], [0.05, 0.24, 0], [0.2, 0.25, 0], [0.34, 0.23, 0]]
     )
@@ -253,7 +253,7 @@ def test_calibrate_cli(tmp_path: Path) -> None:
     argv = ["calibrate", "intrinsics", *paths, "--board", "9x6", "--square", "0.025", "--out", str(cam_json)]
     assert main(argv) == 0
     assert Camera.load_json(cam_json).fx == pytest.approx(615.0, rel=0.005)
-    board_from_camera = look_at([0.2, 0.15, -1.0], [0.2, 0.15, 0.0], up=(0, -1, 0))
+    board_from_camera = look_at([0.2, 0.15, 1.0], [0.2, 0.15, 0.0], up=(0, 1, 0))
     world_pts = np.array(
         [[0.06, 0.05, 0], [0.2, 0.04, 0], [0.33, 0.06, 0], [0.05, 0.24, 0], [0.2, 0.25, 0], [0.34, 0.23, 0]]
     )

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from normpos_grasp.camera.model import Camera
+from normpos_grasp.camera.model import MAX_CAMERA_DISTANCE_M, Camera, check_rotation
 from normpos_grasp.errors import CalibrationError, InputError
 from normpos_grasp.geometry.transforms import invert_pose, transform_points
 from normpos_grasp.typing import ArrayLike, FloatArray, UInt8Array
@@ -165,13 +165,29 @@ class ExtrinsicsOptions:
         min_pixel_separation_px: pixels closer than this are duplicates.
         collinear_tol: relative singular-value threshold for collinear / coplanar-degenerate sets.
         max_rms_px: a solution whose reprojection RMS exceeds this (pixels) is rejected, naming the worst points.
+            Surveyed points clicked to a pixel give well under 1 px; 2 px leaves room for a survey error of a
+            few millimetres at 1 m, while a u/v mix-up or a mis-numbered point gives more.
+        floor_z_m: world height (z up, metres) the camera must be above; None: the lowest control point (a
+            camera below every control point looks up at them: u and v swapped or a world frame with z down).
+        max_distance_m: control points spanning more than this, or a camera farther than this from them, are
+            refused as millimetres given for metres.
     """
 
     refine: bool = True
     min_separation_m: float = 1e-4
     min_pixel_separation_px: float = 0.5
     collinear_tol: float = 1e-3
-    max_rms_px: float = 10.0
+    max_rms_px: float = 2.0
+    floor_z_m: float | None = None
+    max_distance_m: float = MAX_CAMERA_DISTANCE_M
+
+    def __post_init__(self) -> None:
+        for name in ("min_separation_m", "min_pixel_separation_px", "collinear_tol", "max_rms_px", "max_distance_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"ExtrinsicsOptions.{name} must be finite and > 0, got {value}")
+        if self.floor_z_m is not None and not np.isfinite(self.floor_z_m):
+            raise InputError(f"ExtrinsicsOptions.floor_z_m must be finite (metres) or None, got {self.floor_z_m}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -200,10 +216,12 @@ def read_control_points(path: str | Path) -> ControlPoints:
     """Read a control-point CSV with columns x, y, z, u, v (metres, pixels) and an optional name column."""
     p = Path(path)
     try:
-        with p.open(newline="") as fh:
+        with p.open(newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
     except OSError as exc:
         raise InputError(f"cannot read control points {p}: {exc}") from exc
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{p} is not a UTF-8 CSV file: {exc}") from exc
     if not rows:
         raise CalibrationError(f"{p} holds no control points (expected a header name,x,y,z,u,v and rows)")
     needed = {"x", "y", "z", "u", "v"}
@@ -247,6 +265,14 @@ def check_control_points(world: ArrayLike, pixels: ArrayLike, options: Extrinsic
     dw = np.linalg.norm(w[:, None] - w[None], axis=2)
     dp = np.linalg.norm(px[:, None] - px[None], axis=2)
     iu = np.triu_indices(n, 1)
+    span = float(dw.max())
+    if span > opts.max_distance_m:
+        far = tuple(sorted(int(v) for v in np.unravel_index(int(np.argmax(dw)), dw.shape)))
+        raise CalibrationError(
+            f"control points span {span:.4g} m (points {far[0]} and {far[1]}; more than {opts.max_distance_m:g} m "
+            "across a cell): looks like millimetres; give x, y, z in metres",
+            far,
+        )
     dup = [(int(i), int(j)) for i, j in zip(*iu, strict=True) if dw[i, j] < opts.min_separation_m]
     if dup:
         raise CalibrationError(
@@ -331,7 +357,8 @@ def calibrate_extrinsics(
     rms, method, rvec, tvec = min(candidates, key=lambda c: c[0])
     camera_from_world = _pose(rvec, tvec)
     wfc = invert_pose(camera_from_world)
-    wfc[:3, :3] = _orthonormal(wfc[:3, :3])
+    wfc[:3, :3] = check_rotation(wfc[:3, :3], "solved camera rotation")
+    _check_plausible(wfc, w, opts)
     cam = camera.with_extrinsics(wfc)
     proj, _ = cv2.projectPoints(w, rvec, tvec, k, dist)
     res_px = np.linalg.norm(proj.reshape(-1, 2) - px, axis=1)
@@ -340,11 +367,34 @@ def calibrate_extrinsics(
         worst = tuple(int(i) for i in np.argsort(-res_px)[: max(1, len(w) // 4)])
         raise CalibrationError(
             f"extrinsics reprojection RMS {rms:.2f} px exceeds {opts.max_rms_px} px; worst points {list(worst)} "
-            f"({[round(float(res_px[i]), 2) for i in worst]} px): re-survey or re-click them",
+            f"({[round(float(res_px[i]), 2) for i in worst]} px): re-survey or re-click them, and check that the "
+            "u, v columns are not swapped",
             worst,
         )
     logger.info("extrinsics (%s) from %d points: rms %.3f px", method, len(w), rms)
     return ExtrinsicsResult(cam, wfc, res_px, res_m, rms, method)
+
+
+def _check_plausible(world_from_camera: FloatArray, world: FloatArray, opts: ExtrinsicsOptions) -> None:
+    """Refuse a solved camera that cannot be real: under the floor (world z up) or implausibly far from its points."""
+    centre = world_from_camera[:3, 3]
+    dist = np.linalg.norm(world - centre, axis=1)
+    if float(dist.max()) > opts.max_distance_m:
+        raise CalibrationError(
+            f"the solved camera is {float(dist.max()):.4g} m from control point {int(np.argmax(dist))} (more than "
+            f"{opts.max_distance_m:g} m): looks like millimetres; give x, y, z in metres",
+            (int(np.argmax(dist)),),
+        )
+    lowest = int(np.argmin(world[:, 2]))
+    floor = float(world[lowest, 2]) if opts.floor_z_m is None else float(opts.floor_z_m)
+    if centre[2] < floor:
+        where = f"control point {lowest} (z = {floor:.3f} m)" if opts.floor_z_m is None else f"z = {floor:.3f} m"
+        raise CalibrationError(
+            f"the solved camera is at z = {centre[2]:.3f} m, below the floor at {where} (world z up): a camera "
+            "cannot look up at the parts; check that the u, v columns are not swapped and that the world z axis "
+            "points up (give floor_z_m / --floor-z for a camera that really sits below its points)",
+            tuple(range(len(world))),
+        )
 
 
 def _ray_distances(camera: Camera, world: FloatArray, pixels: FloatArray) -> FloatArray:
@@ -365,11 +415,6 @@ def _pose(rvec: ArrayLike, tvec: ArrayLike) -> FloatArray:
     pose[:3, :3] = rot
     pose[:3, 3] = np.asarray(tvec, dtype=np.float64).reshape(3)
     return pose
-
-
-def _orthonormal(rot: FloatArray) -> FloatArray:
-    u, _, vt = np.linalg.svd(rot)
-    return np.asarray(u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt)
 
 
 def _rank(points: FloatArray, tol: float) -> int:

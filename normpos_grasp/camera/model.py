@@ -13,10 +13,78 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.errors import InputError
+from normpos_grasp.errors import ExtrinsicsError, InputError
 from normpos_grasp.geometry.transforms import invert_pose, transform_points
 from normpos_grasp.typing import ArrayLike, FloatArray, UInt8Array
-from normpos_grasp.validation import as_float_array, check_pose
+from normpos_grasp.validation import as_float_array
+
+# Largest accepted max |R^T R - I| of a camera rotation. Files store rounded floats (BOP: about 1e-7); 1e-3 is a
+# rotation error below 0.06 deg, which is projected onto the nearest rotation. Anything larger is not a rotation
+# (an all-zero block: 1.0; a block scaled by 1000: 1e6) and is refused instead of being re-orthonormalised.
+ROTATION_TOL = 1e-3
+# A pick cell camera is within a few metres of the world origin and of what it looks at; 20 m is far beyond any
+# cell and far below what millimetres read as metres give (a camera 0.8 m away reads as 800 m).
+MAX_CAMERA_DISTANCE_M = 20.0
+MAX_IMAGE_SIDE_PX = 16384  # larger than any RGB-D sensor; an image header claiming more is corrupt
+MAX_DEPTH_SCALE_M = 1.0  # metres per raw depth unit: 1.0 is depth stored in metres
+
+
+def check_rotation(value: ArrayLike, name: str = "rotation", tol: float = ROTATION_TOL) -> FloatArray:
+    """A (3, 3) rotation from `value`, projected onto SO(3) when max |R^T R - I| <= `tol`.
+
+    Raises ExtrinsicsError naming `name` with the measured deviation (not orthonormal) or the determinant (a
+    reflection); a matrix that is not a rotation is never silently re-orthonormalised."""
+    rot = as_float_array(value, name, (3, 3))
+    deviation = float(np.abs(rot.T @ rot - np.eye(3)).max())
+    if deviation > tol:
+        raise ExtrinsicsError(
+            f"{name} is not a rotation: max |R^T R - I| = {deviation:.3g} (tolerance {tol:g}); an all-zero, "
+            "scaled or hand-typed block cannot be used: write the calibrated rotation",
+            deviation,
+        )
+    det = float(np.linalg.det(rot))
+    if det < 0:
+        raise ExtrinsicsError(
+            f"{name} has determinant {det:.3f}: a reflection, not a rotation (a left-handed frame or two axes "
+            "swapped); check the axis order of the calibration",
+            det,
+        )
+    u, _, vt = np.linalg.svd(rot)
+    return np.asarray(u @ vt)
+
+
+def check_world_from_camera(
+    value: ArrayLike,
+    name: str = "world_from_camera",
+    floor_z_m: float | None = None,
+    max_distance_m: float = MAX_CAMERA_DISTANCE_M,
+) -> FloatArray:
+    """A validated (4, 4) `world_from_camera` (metres, world z up): the one check every camera loader uses.
+
+    Refuses (ExtrinsicsError, naming `name` and the measured value) a last row other than [0, 0, 0, 1], a rotation
+    block that is not orthonormal within `ROTATION_TOL` or is a reflection (see `check_rotation`), a camera more
+    than `max_distance_m` from the world origin (units: millimetres read as metres) and, when `floor_z_m` is
+    given, a camera below the floor. Returns a new array with the rotation projected onto SO(3)."""
+    pose = as_float_array(value, name, (4, 4))
+    if not np.allclose(pose[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise ExtrinsicsError(f"{name}: last row must be [0, 0, 0, 1], got {pose[3].tolist()}")
+    out = np.eye(4)
+    out[:3, :3] = check_rotation(pose[:3, :3], f"{name} rotation")
+    out[:3, 3] = pose[:3, 3]
+    dist = float(np.linalg.norm(out[:3, 3]))
+    if dist > max_distance_m:
+        raise ExtrinsicsError(
+            f"{name}: camera {dist:.4g} m from the world origin (more than {max_distance_m:g} m): looks like "
+            "millimetres; the translation is in metres",
+            dist,
+        )
+    if floor_z_m is not None and out[2, 3] < floor_z_m:
+        raise ExtrinsicsError(
+            f"{name}: camera at z = {out[2, 3]:.3f} m, under the floor at z = {floor_z_m:.3f} m (world z up); "
+            "check the sign of z, the axis order and the calibration's u/v columns",
+            float(out[2, 3]),
+        )
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,20 +110,35 @@ class Camera:
         k = as_float_array(self.K, "K", (3, 3))
         if k[0, 0] <= 0 or k[1, 1] <= 0 or not np.allclose(k[2], [0, 0, 1]) or k[1, 0] != 0 or k[0, 1] != 0:
             raise InputError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {k.tolist()}")
-        if int(self.width) <= 0 or int(self.height) <= 0:
-            raise InputError(f"image size must be positive, got {self.width}x{self.height}")
+        size_ok = all(
+            isinstance(v, int | float | np.integer | np.floating)
+            and not isinstance(v, bool)
+            and float(v).is_integer()
+            and 0 < v <= MAX_IMAGE_SIDE_PX
+            for v in (self.width, self.height)
+        )
+        if not size_ok:
+            raise InputError(
+                f"image size must be whole numbers of pixels in 1..{MAX_IMAGE_SIDE_PX}, got {self.width}x{self.height}"
+            )
         dist = as_float_array(self.distortion, "distortion", (None,))
         if dist.size not in (4, 5, 8, 12):
             raise InputError(f"distortion must have 4, 5, 8 or 12 coefficients (no tilt model), got {dist.size}")
-        if not self.depth_scale_m > 0:
-            raise InputError(f"depth_scale_m must be positive (metres per unit), got {self.depth_scale_m}")
+        scale = self.depth_scale_m
+        if isinstance(scale, bool) or not isinstance(scale, int | float | np.floating | np.integer):
+            raise InputError(f"depth_scale_m must be a number (metres per unit), got {scale!r}")
+        if not (np.isfinite(scale) and 0 < scale <= MAX_DEPTH_SCALE_M):
+            raise InputError(
+                f"depth_scale_m must be finite, positive and at most {MAX_DEPTH_SCALE_M} (metres per raw unit; "
+                f"0.001 for millimetre depth), got {scale}"
+            )
         object.__setattr__(self, "K", k)
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
         object.__setattr__(self, "distortion", dist)
         object.__setattr__(self, "depth_scale_m", float(self.depth_scale_m))
         if self.world_from_camera is not None:
-            object.__setattr__(self, "world_from_camera", check_pose(self.world_from_camera, "world_from_camera"))
+            object.__setattr__(self, "world_from_camera", check_world_from_camera(self.world_from_camera))
         for arr in (self.K, self.distortion, self.world_from_camera):
             if arr is not None:
                 arr.setflags(write=False)
@@ -98,7 +181,7 @@ class Camera:
 
     def with_extrinsics(self, world_from_camera: ArrayLike | None) -> Camera:
         """A copy with other extrinsics."""
-        wfc = None if world_from_camera is None else check_pose(world_from_camera, "world_from_camera")
+        wfc = None if world_from_camera is None else check_world_from_camera(world_from_camera)
         return Camera(self.K, self.width, self.height, self.distortion, self.depth_scale_m, wfc)
 
     def scaled(self, factor: float) -> Camera:
@@ -171,21 +254,22 @@ class Camera:
         return out
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Camera:
-        """Inverse of `to_dict`; raises InputError naming a missing key."""
-        try:
-            return cls(
-                K=np.asarray(data["K"], dtype=np.float64),
-                width=int(data["width"]),
-                height=int(data["height"]),
-                distortion=np.asarray(data.get("distortion", np.zeros(5)), dtype=np.float64),
-                depth_scale_m=float(data.get("depth_scale_m", 0.001)),
-                world_from_camera=None
-                if data.get("world_from_camera") is None
-                else np.asarray(data["world_from_camera"], dtype=np.float64),
-            )
-        except KeyError as exc:
-            raise InputError(f"camera description lacks the key {exc.args[0]!r}") from exc
+    def from_dict(cls, data: Any) -> Camera:
+        """Inverse of `to_dict`; raises InputError naming a missing or malformed key."""
+        if not isinstance(data, dict):
+            raise InputError(f"a camera description must be a JSON object, got {type(data).__name__}")
+        missing = [k for k in ("K", "width", "height") if k not in data]
+        if missing:
+            raise InputError(f"camera description lacks the key {missing[0]!r}")
+        wfc = data.get("world_from_camera")
+        return cls(
+            K=as_float_array(data["K"], "K", (3, 3)),
+            width=_whole(data["width"], "width"),
+            height=_whole(data["height"], "height"),
+            distortion=as_float_array(data.get("distortion", np.zeros(5)), "distortion", (None,)),
+            depth_scale_m=_number(data.get("depth_scale_m", 0.001), "depth_scale_m"),
+            world_from_camera=None if wfc is None else as_float_array(wfc, "world_from_camera", (4, 4)),
+        )
 
     def save_json(self, path: str | Path) -> None:
         """Write the camera as JSON atomically (a temporary file renamed into place)."""
@@ -196,29 +280,39 @@ class Camera:
 
     @classmethod
     def load_json(cls, path: str | Path) -> Camera:
+        """Read a camera JSON written by `save_json` (or by hand); every problem is an InputError naming the file."""
         try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
             raise InputError(f"cannot read camera file {path}: {exc}") from exc
-        return cls.from_dict(data)
+        try:
+            return cls.from_dict(data)
+        except InputError as exc:
+            raise type(exc)(f"camera file {path}: {exc}") from exc
 
     @classmethod
-    def from_bop(cls, entry: dict[str, Any], width: int, height: int) -> Camera:
-        """From one BOP `scene_camera.json` entry: cam_K, depth_scale (mm/unit), optional cam_R_w2c, cam_t_w2c (mm)."""
-        try:
-            k = np.asarray(entry["cam_K"], dtype=np.float64).reshape(3, 3)
-        except KeyError as exc:
-            raise InputError("BOP camera entry lacks cam_K") from exc
+    def from_bop(cls, entry: Any, width: int, height: int) -> Camera:
+        """From one BOP `scene_camera.json` entry: cam_K, depth_scale (mm/unit), optional cam_R_w2c, cam_t_w2c (mm).
+
+        The rotation must be orthonormal within `ROTATION_TOL` (rounding is corrected, garbage refused); a
+        missing `depth_scale` means 1.0 mm per unit (BOP's default)."""
+        if not isinstance(entry, dict):
+            raise InputError(f"a BOP camera entry must be an object, got {type(entry).__name__}")
+        if "cam_K" not in entry:
+            raise InputError("BOP camera entry lacks cam_K")
+        k = as_float_array(entry["cam_K"], "cam_K", (9,)).reshape(3, 3)
         wfc = None
-        if "cam_R_w2c" in entry and "cam_t_w2c" in entry:
+        if ("cam_R_w2c" in entry) != ("cam_t_w2c" in entry):
+            raise InputError("BOP camera entry has only one of cam_R_w2c and cam_t_w2c; give both or neither")
+        if "cam_R_w2c" in entry:
             cfw = np.eye(4)
-            cfw[:3, :3] = np.asarray(entry["cam_R_w2c"], dtype=np.float64).reshape(3, 3)
-            cfw[:3, 3] = np.asarray(entry["cam_t_w2c"], dtype=np.float64).reshape(3) / 1000.0
+            cfw[:3, :3] = check_rotation(
+                as_float_array(entry["cam_R_w2c"], "cam_R_w2c", (9,)).reshape(3, 3), "cam_R_w2c"
+            )
+            cfw[:3, 3] = as_float_array(entry["cam_t_w2c"], "cam_t_w2c", (3,)) / 1000.0
             wfc = invert_pose(cfw)
-            # re-orthonormalise: BOP files store rounded floats
-            u, _, vt = np.linalg.svd(wfc[:3, :3])
-            wfc[:3, :3] = u @ vt
-        return cls(k, width, height, np.zeros(5), float(entry.get("depth_scale", 1.0)) / 1000.0, wfc)
+        scale_mm = _number(entry.get("depth_scale", 1.0), "depth_scale")
+        return cls(k, width, height, np.zeros(5), scale_mm / 1000.0, wfc)
 
     def to_bop(self) -> dict[str, Any]:
         """One BOP `scene_camera.json` entry (mm); BOP has no distortion field, so undistort first."""
@@ -255,6 +349,18 @@ class RGBDFrame:
     def frame_name(self) -> str:
         """'world' when the camera has extrinsics, else 'camera'."""
         return "camera" if self.camera.world_from_camera is None else "world"
+
+
+def _whole(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not float(value).is_integer():
+        raise InputError(f"{name} must be a whole number of pixels, got {value!r}")
+    return int(value)
+
+
+def _number(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InputError(f"{name} must be a number, got {value!r}")
+    return float(value)
 
 
 def _distort(x: FloatArray, y: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
