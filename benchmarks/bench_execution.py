@@ -74,7 +74,7 @@ def _plan() -> tuple[dict, object]:
     from normpos_grasp.cell import load_cell
     from normpos_grasp.geometry import make_pose
     from normpos_grasp.planning import plan_pick
-    from normpos_grasp.templates.model import Template, TemplateFit
+    from normpos_grasp.records.template import Template, TemplateFit
 
     cell = load_cell(ROOT / "examples" / "cells" / "ur5e_bin_parallel.yaml")
     part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")

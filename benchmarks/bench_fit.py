@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from normpos_grasp.geometry.transforms import rotation_angle
+from normpos_grasp.records.template import Template
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many, fit_template
-from normpos_grasp.templates.model import Template
 from normpos_grasp.templates.prepared import prepare
 
 

@@ -27,9 +27,9 @@ from normpos_grasp.cell.config import BinSpec, BoxSpec, CellConfig
 from normpos_grasp.geometry import make_pose
 from normpos_grasp.kinematics import Gripper, Robot
 from normpos_grasp.planning import ArmModel, PlanOptions, plan_pick
+from normpos_grasp.records.template import TemplateFit
 from normpos_grasp.sim.parts import default_part_library
 from normpos_grasp.sim.scene import SceneOptions, compose_scene
-from normpos_grasp.templates.model import TemplateFit
 
 ROOT = Path(__file__).resolve().parents[1]
 

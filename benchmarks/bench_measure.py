@@ -28,7 +28,7 @@ from normpos_grasp.geometry import make_pose, rotation_from_rotvec
 from normpos_grasp.geometry.transforms import look_at
 from normpos_grasp.measure.depth import DepthFillOptions, fill_depth
 from normpos_grasp.measure.measure import MeasureOptions, backproject_depth, measure_instances
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
 
 K = np.array([[615.0, 0.0, 319.5], [0.0, 615.0, 239.5], [0.0, 0.0, 1.0]])
 LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"

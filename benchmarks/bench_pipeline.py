@@ -39,7 +39,7 @@ import numpy as np
 
 from normpos_grasp.errors import NormposError
 from normpos_grasp.geometry.transforms import rotation_angle
-from normpos_grasp.templates.model import Template
+from normpos_grasp.records.template import Template
 from normpos_grasp.templates.prepared import prepare
 
 PAPER = "paper (YOLACT, ZED2): detection 96.5 % (193/200), 55 ms/frame on an RTX 2080 Ti, 3D position error 22.75 cm"

@@ -27,8 +27,8 @@ import numpy as np
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.depth_segmenter import DepthSegmenter, DepthSegmenterOptions
 from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
-from normpos_grasp.perception.train.data import Sample, synth_samples
-from normpos_grasp.perception.train.metrics import MatchStats
+from normpos_grasp.training.data import Sample, synth_samples
+from normpos_grasp.training.metrics import MatchStats
 
 SCENE_SETS: dict[str, dict[str, object]] = {
     "mixed": {},  # container, count, clutter and stacking drawn per seed, as in training

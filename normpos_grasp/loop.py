@@ -22,10 +22,11 @@ from normpos_grasp.errors import DriverFault, InputError, RobotModelError, Safet
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.execution.plan import ExecutionReport, execute_plan
 from normpos_grasp.execution.safety import SafetyLimits
-from normpos_grasp.perception.base import Instance, Segmenter
+from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, process_frame
-from normpos_grasp.planning.plan import PickPlan
-from normpos_grasp.templates.model import Template
+from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.plan import PickPlan
+from normpos_grasp.records.template import Template
 from normpos_grasp.typing import FloatArray
 
 log = logging.getLogger(__name__)
@@ -282,7 +283,10 @@ def run_cell_loop(
     executed (for live views); `on_pick` hears every record. The source checks every pick, also in a dry run (a
     synthetic bin then replays it in physics and loses the part, so a dry run walks through the bin). A
     `DriverFault` during execution ends the loop with a 'driver_fault' record (the driver has stopped the arm and
-    sends nothing further until it is resumed); a plan the safety limits refuse ends it with 'unsafe_plan'.
+    sends nothing further until it is resumed); a plan the safety limits refuse ends it with 'unsafe_plan'; a grip
+    the gripper's detect input does not confirm ends it with 'pick_failed' (check 'grip_not_detected'). An interrupt
+    (KeyboardInterrupt, TerminationRequested) or any other exception leaves through the driver's motion call, which
+    stops the arm first.
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
@@ -323,6 +327,12 @@ def run_cell_loop(
             emit(PickRecord(index, result, status, "not_checked", plan_json, None, timings, fault))
             break
         timings["execute"] = (time.perf_counter() - t0) * 1e3
+        if report.status == "grip_failed":
+            # the grip-detect input stayed low: the pick stopped at the grasp with the arm at rest; the operator acts
+            log.error("pick %d: grip not detected after closing; loop stopped", index + 1)
+            fault = "grip not detected after closing: pick stopped at the grasp"
+            emit(PickRecord(index, result, "pick_failed", "grip_not_detected", plan_json, report, timings, fault))
+            break
         t0 = time.perf_counter()
         check = source.check_pick(plan)  # synthetic bins replay the pick in physics, dry run or not
         timings["check"] = (time.perf_counter() - t0) * 1e3

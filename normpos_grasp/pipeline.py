@@ -14,11 +14,13 @@ from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances
-from normpos_grasp.measure.normpos import NormPosition
-from normpos_grasp.perception.base import Instance, Segmenter
-from normpos_grasp.planning.plan import PickPlan, PlanOptions, plan_pick
+from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.planning.plan import PlanOptions, plan_pick
+from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.plan import PickPlan
+from normpos_grasp.records.template import Template, TemplateFit
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_many
-from normpos_grasp.templates.model import Template, TemplateFit
 from normpos_grasp.typing import FloatArray
 
 SEGMENTER_KINDS = ("model", "depth")

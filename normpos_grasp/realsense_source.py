@@ -16,7 +16,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError, MissingDependency, NormposError
-from normpos_grasp.planning.plan import PickPlan
+from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.typing import FloatArray
 
 log = logging.getLogger(__name__)

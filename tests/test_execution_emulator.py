@@ -210,7 +210,7 @@ def test_planner_plan_executes(driver: RtdeDriver) -> None:
     from normpos_grasp.cell import load_cell
     from normpos_grasp.geometry import make_pose
     from normpos_grasp.planning import plan_pick
-    from normpos_grasp.templates.model import Template, TemplateFit
+    from normpos_grasp.records.template import Template, TemplateFit
 
     cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
     fast = replace(  # twice the example's caps (still below the UR5e's rated 3.14 rad/s): a shorter test

@@ -27,8 +27,8 @@ from normpos_grasp.measure.measure import (
     occupancy,
     oriented_box,
 )
-from normpos_grasp.perception.base import Instance
 from normpos_grasp.perception.gt import GroundTruthSegmenter
+from normpos_grasp.records.instance import Instance
 
 trimesh = pytest.importorskip("trimesh")
 LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"

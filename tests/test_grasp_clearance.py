@@ -15,7 +15,7 @@ from normpos_grasp.geometry import make_pose, rotation_from_rotvec
 from normpos_grasp.grasp.synthesis import synthesize
 from normpos_grasp.planning import PlanOptions, plan_pick
 from normpos_grasp.planning.evaluate import EvaluationOptions
-from normpos_grasp.templates.model import Template, TemplateFit
+from normpos_grasp.records.template import Template, TemplateFit
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cells"
 FLOOR_Z = 0.01  # inner bin floor of the example UR5e cell (bin centre (0.5, 0), inner 0.40 x 0.30 m)
@@ -135,7 +135,7 @@ def test_flat_ring_pinched_across_its_outer_diameter(bin_cell: CellConfig) -> No
 def test_configs_clear_is_conservative(bin_cell: CellConfig) -> None:
     """The vectorised sphere pre-test never calls a configuration free that the exact check finds colliding, and
     proves some free (random configurations around a bin with parts, holding one)."""
-    from normpos_grasp.planning.arm import ArmModel
+    from normpos_grasp.kinematics.arm import ArmModel
     from normpos_grasp.planning.plan import build_world
 
     part = Template("b", "b", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")

@@ -15,10 +15,10 @@ from normpos_grasp.cell import cell_from_dict, load_cell
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.geometry import make_pose, rotation_from_rotvec
 from normpos_grasp.kinematics import Gripper, Robot
-from normpos_grasp.measure.normpos import NormPosition, OrientedBox
 from normpos_grasp.planning import PlanOptions, plan_pick
 from normpos_grasp.planning.evaluate import EvaluationOptions
-from normpos_grasp.templates.model import GraspAnnotation, Symmetry, Template, TemplateFit
+from normpos_grasp.records.normpos import NormPosition, OrientedBox
+from normpos_grasp.records.template import GraspAnnotation, Symmetry, Template, TemplateFit
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cells"
 FLOOR_Z = 0.01  # inner bin floor of the example UR5e cell (bin centre x = 0.5, walls at x = 0.3 / 0.7)

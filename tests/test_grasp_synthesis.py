@@ -15,7 +15,7 @@ from normpos_grasp.kinematics import Robot
 from normpos_grasp.planning import ArmModel
 from normpos_grasp.planning.rrt import MotionOptions, edge_free, plan_joint_motion
 from normpos_grasp.planning.timing import time_parameterise
-from normpos_grasp.templates.model import GraspAnnotation, Symmetry, Template
+from normpos_grasp.records.template import GraspAnnotation, Symmetry, Template
 
 OPTS = SynthesisOptions()
 

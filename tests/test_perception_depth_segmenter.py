@@ -9,7 +9,7 @@ import pytest
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.geometry.transforms import look_at
 from normpos_grasp.perception.depth_segmenter import DepthSegmenter, fill_enclosed_holes
-from normpos_grasp.perception.train.metrics import mask_iou_matrix
+from normpos_grasp.training.metrics import mask_iou_matrix
 
 W, H, F = 640, 480, 615.0
 Box = tuple[tuple[float, float, float], tuple[float, float, float]]  # (min corner, max corner), world metres

@@ -11,14 +11,14 @@ pytest.importorskip("mujoco")  # physics settling of the bin scene
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.demo import resolve_cell
-from normpos_grasp.perception.base import Instance
 from normpos_grasp.pipeline import perceive
+from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene
 from normpos_grasp.sim.dataset import SyntheticFrame, render_frame
 from normpos_grasp.sim.parts import default_part_library
 from normpos_grasp.sim.render import make_renderer
 from normpos_grasp.sim.sensor import sensor_preset
-from normpos_grasp.templates.model import Template
 
 SEED = 9017  # not used by other tests
 

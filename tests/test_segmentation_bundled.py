@@ -11,8 +11,8 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("mujoco")
 
 from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
-from normpos_grasp.perception.train.data import synth_samples
-from normpos_grasp.perception.train.metrics import MatchStats
+from normpos_grasp.training.data import synth_samples
+from normpos_grasp.training.metrics import MatchStats
 
 
 @pytest.fixture(scope="module")

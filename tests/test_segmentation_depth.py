@@ -9,7 +9,7 @@ from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.depth_segmenter import DepthSegmenter, DepthSegmenterOptions, ransac_plane
-from normpos_grasp.perception.train.metrics import mask_iou_matrix
+from normpos_grasp.training.metrics import mask_iou_matrix
 
 W, H, F, Z0 = 640, 480, 615.0, 0.70
 

@@ -13,7 +13,7 @@ pytest.importorskip("onnx")
 
 from normpos_grasp.errors import InputError
 from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, OnnxSegmenter, OnnxSegmenterOptions
-from normpos_grasp.perception.train.data import (
+from normpos_grasp.training.data import (
     CLASS_NAMES,
     cell_samples,
     frame_samples,
@@ -22,7 +22,7 @@ from normpos_grasp.perception.train.data import (
     read_shards,
     synth_samples,
 )
-from normpos_grasp.perception.train.trainer import TrainOptions, generate_sample_shards, generate_shards, train
+from normpos_grasp.training.trainer import TrainOptions, generate_sample_shards, generate_shards, train
 
 
 def test_pack_sample_boxes_and_masks_agree() -> None:

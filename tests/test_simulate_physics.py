@@ -10,13 +10,13 @@ trimesh = pytest.importorskip("trimesh")
 
 from normpos_grasp.errors import InputError  # noqa: E402
 from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec  # noqa: E402
+from normpos_grasp.records.template import Template  # noqa: E402
 from normpos_grasp.sim.physics import (  # noqa: E402
     GripperSpec,
     PhysicsOptions,
     collision_pieces,
     validate_grasp,
 )
-from normpos_grasp.templates.model import Template  # noqa: E402
 
 TABLE = [("table", make_pose(translation=[0.0, 0.0, -0.025]), np.array([1.0, 1.0, 0.05]))]
 

@@ -7,8 +7,8 @@ import pytest
 
 trimesh = pytest.importorskip("trimesh")
 
+from normpos_grasp.records.template import SHAPE_CLASSES  # noqa: E402
 from normpos_grasp.sim.parts import box_symmetry, default_part_library, part_library_by_name  # noqa: E402
-from normpos_grasp.templates.model import SHAPE_CLASSES  # noqa: E402
 
 LIB = default_part_library()
 EXPECTED = {

@@ -14,6 +14,7 @@ trimesh = pytest.importorskip("trimesh")
 from normpos_grasp.camera.model import Camera  # noqa: E402
 from normpos_grasp.errors import FitRejected, InputError, TemplateError  # noqa: E402
 from normpos_grasp.geometry.transforms import make_pose, random_rotation, rotation_angle  # noqa: E402
+from normpos_grasp.records.template import Symmetry, Template  # noqa: E402
 from normpos_grasp.templates.complete import complete_normposition  # noqa: E402
 from normpos_grasp.templates.control_points import fit_control_points  # noqa: E402
 from normpos_grasp.templates.fit import (  # noqa: E402
@@ -25,7 +26,6 @@ from normpos_grasp.templates.fit import (  # noqa: E402
     fit_template_or_raise,
 )
 from normpos_grasp.templates.library import load_library  # noqa: E402
-from normpos_grasp.templates.model import Symmetry, Template  # noqa: E402
 from normpos_grasp.templates.synthetic import render_views  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

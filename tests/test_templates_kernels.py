@@ -16,10 +16,10 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from normpos_grasp.camera.model import Camera  # noqa: E402
 from normpos_grasp.geometry.transforms import make_pose, random_rotation  # noqa: E402
+from normpos_grasp.records.template import Template  # noqa: E402
 from normpos_grasp.templates import kernels  # noqa: E402
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many  # noqa: E402
 from normpos_grasp.templates.library import load_library  # noqa: E402
-from normpos_grasp.templates.model import Template  # noqa: E402
 from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins, prepare  # noqa: E402
 from normpos_grasp.templates.synthetic import render_views  # noqa: E402
 

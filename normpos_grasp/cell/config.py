@@ -7,24 +7,41 @@ Poses in the file are either `{xyz: [x, y, z], rpy_deg: [roll, pitch, yaw]}` (me
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from difflib import get_close_matches
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from normpos_grasp.collision.tool import ToolModel, parallel_gripper, suction_tool, tool_from_gripper
-from normpos_grasp.errors import CellConfigError, NormposError
+from normpos_grasp.camera.model import ROTATION_TOL, check_rotation, check_world_from_camera
+from normpos_grasp.errors import CellConfigError, InputError, NormposError
+from normpos_grasp.io.yaml_safe import load_yaml_file
 from normpos_grasp.kinematics.gripper import Gripper
-from normpos_grasp.kinematics.ur_params import UR_PARAMS
+from normpos_grasp.kinematics.ur_params import JOINT_NAMES, UR_PARAMS
+from normpos_grasp.records.tool import ToolModel, parallel_gripper, suction_tool, tool_from_gripper
 from normpos_grasp.typing import FloatArray
 
-_TOP_KEYS = {
+# Ceilings of the motion caps. Joint speeds: each joint's rated speed (ur_params, from UR's ROS description).
+# UR rates no joint or tool acceleration (the ROS description says has_acceleration_limits: false), so the
+# acceleration and tool ceilings are the bounds ur_rtde itself enforces on moveJ / moveL arguments
+# (ur_rtde rtde_control_interface.h: UR_JOINT_ACCELERATION_MAX 40.0 rad/s^2, UR_TOOL_VELOCITY_MAX 3.0 m/s,
+# UR_TOOL_ACCELERATION_MAX 150.0 m/s^2): a cap above them could never be commanded. execution.SafetyLimits
+# applies the same numbers.
+MAX_JOINT_ACCELERATION = 40.0  # rad/s^2
+MAX_TCP_SPEED = 3.0  # m/s
+MAX_TCP_ACCELERATION = 150.0  # m/s^2
+# Any coordinate or size in a cell file: a cell is a few metres across; larger values are millimetres.
+MAX_EXTENT_M = 20.0
+MAX_TEXT = 200  # characters of a name or path
+
+_TOP_KEYS = (
     "name",
     "robot",
     "gripper",
     "camera",
+    "floor_z",
     "table",
     "bin",
     "conveyor",
@@ -33,7 +50,29 @@ _TOP_KEYS = {
     "templates",
     "motion",
     "planning",
-}
+)
+_ROBOT_KEYS = ("model", "serial_number", "world_from_base", "home")
+_CAMERA_KEYS = ("world_from_camera", "from_scene")
+_POSE_KEYS = ("xyz", "rpy_deg", "rpy")
+_BOX_KEYS = ("pose", "size")
+_FIXTURE_KEYS = ("name", "pose", "size")
+_BIN_KEYS = ("pose", "inner_size", "wall_m")
+_PLACE_KEYS = ("name", "world_from_tcp", "approach_m")
+_MOTION_KEYS = ("joint_velocity", "joint_acceleration", "tcp_speed_m_s", "tcp_acceleration_m_s2", "workspace")
+_WORKSPACE_KEYS = ("min", "max")
+_PLANNING_KEYS = ("entry_clearance_m", "lift_m", "voxel_m")
+_PACKAGED_GRIPPER_KEYS = ("model", "kind", "mount", "payload_kg")
+_CUSTOM_COMMON_KEYS = ("model", "kind", "mount", "payload_kg", "flange_to_tcp_m", "body_size_m")
+_CUSTOM_PARALLEL_KEYS = (
+    *_CUSTOM_COMMON_KEYS,
+    "stroke_m",
+    "min_opening_m",
+    "finger_length_m",
+    "finger_width_m",
+    "finger_thickness_m",
+    "grip_depth_m",
+)
+_CUSTOM_SUCTION_KEYS = (*_CUSTOM_COMMON_KEYS, "cup_diameter_m", "stem_diameter_m")
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,8 +128,9 @@ class PlaceSpec:
 
 @dataclass(frozen=True, eq=False)
 class MotionLimits:
-    """Caps for planned motion: joint_velocity (6,) rad/s, joint_acceleration (6,) rad/s^2 (both already the
-    smaller of the cell cap and the robot's limit), tcp_speed_m_s for Cartesian segments, workspace box
+    """Caps for planned motion: joint_velocity (6,) rad/s (each within the robot's rated joint speed),
+    joint_acceleration (6,) rad/s^2 (each within `MAX_JOINT_ACCELERATION`), tcp_speed_m_s and
+    tcp_acceleration_m_s2 for Cartesian segments (within `MAX_TCP_SPEED`, `MAX_TCP_ACCELERATION`), workspace box
     (min (3,), max (3,)) the TCP must stay in, m."""
 
     joint_velocity: FloatArray
@@ -98,11 +138,15 @@ class MotionLimits:
     tcp_speed_m_s: float
     workspace_min: FloatArray
     workspace_max: FloatArray
+    tcp_acceleration_m_s2: float = 2.0
 
 
 @dataclass(frozen=True, eq=False)
 class CellConfig:
-    """A validated cell: robot, tool, static geometry, place poses, template library and limits."""
+    """A validated cell: robot, tool, static geometry, place poses, template library and limits.
+
+    robot_serial: the controller's serial number when the file names one (execution compares it);
+    floor_z: world height of the floor when the file gives one, m."""
 
     name: str
     robot_model: str
@@ -120,24 +164,36 @@ class CellConfig:
     voxel_m: float = 0.01
     source: Path | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    robot_serial: str | None = None
+    floor_z: float | None = None
 
     @property
     def entry_z(self) -> float:
         """World height of the bin entry / exit poses (rim + clearance), or -inf without a bin."""
         return self.bin.rim_z + self.entry_clearance_m if self.bin is not None else -np.inf
 
+    @property
+    def camera_floor_z(self) -> float | None:
+        """Lowest plausible camera height, m: above `floor_z` and above the lowest surface parts rest on (table
+        top, bin floor, conveyor belt), since a camera below all of them cannot see a part; None when the cell
+        gives neither."""
+        return _camera_floor(self.floor_z, self.static_boxes, self.bin)
+
+    def check_camera(self, world_from_camera: Any, name: str = "world_from_camera") -> FloatArray:
+        """Validate extrinsics against this cell (camera.model.check_world_from_camera with `camera_floor_z`);
+        for cameras that come from a dataset (`camera: {from_scene: true}`). Raises ExtrinsicsError."""
+        return check_world_from_camera(world_from_camera, name, floor_z_m=self.camera_floor_z)
+
 
 def load_cell(path: str | Path) -> CellConfig:
-    """Read and validate a cell YAML file (yaml.safe_load); relative paths inside resolve against its folder."""
+    """Read and validate a cell YAML file; relative paths inside resolve against its folder.
+
+    The file is parsed by io.yaml_safe (no anchors, aliases, merge keys or duplicate keys; errors in one line)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CellConfigError(f"cannot read cell file {p}: {exc.strerror}; check the path") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise CellConfigError(f"{p} is not valid YAML: {exc}") from exc
+        data = load_yaml_file(p)
+    except InputError as exc:
+        raise CellConfigError(str(exc)) from exc
     return cell_from_dict(data, base_dir=p.parent, source=p)
 
 
@@ -145,28 +201,87 @@ def _err(path: str, msg: str) -> CellConfigError:
     return CellConfigError(msg, path)
 
 
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _mapping(v: Any, path: str, allowed: Iterable[str], what: str = "a mapping") -> dict[str, Any]:
+    """`v` as a mapping whose keys are all in `allowed`; an unknown key is an error naming its full path."""
+    if not isinstance(v, dict):
+        raise _err(path, f"expected {what}, got {type(v).__name__} {_short(v)}")
+    names = tuple(allowed)
+    for key in v:
+        if not isinstance(key, str):
+            raise _err(path or "(top level)", f"keys must be text, got {type(key).__name__} {key!r}")
+        if key not in names:
+            close = get_close_matches(key, names, n=1, cutoff=0.75)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise _err(_join(path, key), f"unknown key; {hint}allowed here: {', '.join(names)}")
+    return v
+
+
+def _short(v: Any) -> str:
+    text = repr(v)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _req(d: dict[str, Any], key: str, path: str) -> Any:
     if key not in d:
-        raise _err(f"{path}.{key}" if path else key, "required key is missing")
+        raise _err(_join(path, key), "required key is missing")
     return d[key]
 
 
-def _num(v: Any, path: str, lo: float = -np.inf, hi: float = np.inf) -> float:
+def _text(v: Any, path: str) -> str:
+    if not isinstance(v, str) or not v.strip():
+        raise _err(path, f"expected non-empty text, got {type(v).__name__} {_short(v)}")
+    if len(v) > MAX_TEXT or any(ord(c) < 32 for c in v):
+        raise _err(path, f"expected one line of at most {MAX_TEXT} characters, got {len(v)} characters")
+    return v
+
+
+def _num(v: Any, path: str, lo: float = -np.inf, hi: float = np.inf, unit: str = "") -> float:
+    """A finite number in [lo, hi]; `unit` names it in the message."""
+    u = f" {unit}" if unit else ""
     if isinstance(v, bool) or not isinstance(v, int | float):
-        raise _err(path, f"expected a number, got {type(v).__name__} {v!r}")
+        hint = ""
+        if isinstance(v, str):
+            try:
+                float(v)
+                hint = " (YAML reads an exponent without a dot, such as 1e3, as text: write 1.0e3)"
+            except ValueError:
+                pass
+        raise _err(path, f"expected a number{u}, got {type(v).__name__} {_short(v)}{hint}")
     f = float(v)
-    if not np.isfinite(f) or f < lo or f > hi:
-        raise _err(path, f"expected a finite number in [{lo}, {hi}], got {v!r}")
+    if not np.isfinite(f):
+        raise _err(path, f"expected a finite number{u}, got {v!r}")
+    if f < lo or f > hi:
+        raise _err(path, f"{v!r}{u} is outside [{lo:g}, {hi:g}]{u}")
     return f
 
 
-def _vec(v: Any, path: str, n: int, positive: bool = False) -> FloatArray:
-    if not isinstance(v, list | tuple) or len(v) != n:
-        raise _err(path, f"expected a list of {n} numbers, got {v!r}")
-    arr = np.array([_num(x, f"{path}[{i}]") for i, x in enumerate(v)], dtype=np.float64)
-    if positive and np.any(arr <= 0):
-        raise _err(path, f"expected positive sizes, got {arr.tolist()}")
-    return arr
+def _length(v: Any, path: str, lo: float = -MAX_EXTENT_M, hi: float = MAX_EXTENT_M) -> float:
+    """A length or coordinate in metres; beyond `MAX_EXTENT_M` the message says it looks like millimetres."""
+    f = _num(v, path, unit="m")
+    if abs(f) > MAX_EXTENT_M:
+        raise _err(path, f"{v!r} m is more than {MAX_EXTENT_M:g} m: looks like millimetres; cell files are in metres")
+    if f < lo or f > hi:
+        raise _err(path, f"{v!r} m is outside [{lo:g}, {hi:g}] m")
+    return f
+
+
+def _list(v: Any, path: str, n: int) -> list[Any]:
+    if not isinstance(v, list) or len(v) != n:
+        raise _err(path, f"expected a list of {n} numbers, got {_short(v)}")
+    return v
+
+
+def _vec(v: Any, path: str, n: int, lo: float = -np.inf, hi: float = np.inf, unit: str = "") -> FloatArray:
+    return np.array([_num(x, f"{path}[{i}]", lo, hi, unit) for i, x in enumerate(_list(v, path, n))])
+
+
+def _lengths(v: Any, path: str, n: int, positive: bool = False) -> FloatArray:
+    lo = 1e-4 if positive else -MAX_EXTENT_M
+    return np.array([_length(x, f"{path}[{i}]", lo=lo) for i, x in enumerate(_list(v, path, n))])
 
 
 def _rpy(r: FloatArray) -> FloatArray:
@@ -180,57 +295,70 @@ def _rpy(r: FloatArray) -> FloatArray:
 
 
 def parse_pose(v: Any, path: str) -> FloatArray:
-    """A (4, 4) pose from `{xyz, rpy_deg}`, `{xyz, rpy}` or a 4x4 nested list; errors name `path`."""
+    """A (4, 4) pose from `{xyz, rpy_deg}`, `{xyz, rpy}` or a 4x4 nested list; errors name `path`.
+
+    Translations are metres within `MAX_EXTENT_M`; a 4x4 rotation block must be orthonormal within
+    camera.model.ROTATION_TOL (it is then projected onto the nearest rotation) with determinant +1."""
     if isinstance(v, dict):
-        unknown = set(v) - {"xyz", "rpy", "rpy_deg"}
-        if unknown:
-            raise _err(path, f"unknown pose keys {sorted(unknown)}; use xyz and rpy_deg (or rpy in radians)")
+        d = _mapping(v, path, _POSE_KEYS, "a pose")
         pose = np.eye(4)
-        pose[:3, 3] = _vec(v.get("xyz", [0, 0, 0]), f"{path}.xyz", 3)
-        if "rpy_deg" in v and "rpy" in v:
+        pose[:3, 3] = _lengths(d.get("xyz", [0, 0, 0]), f"{path}.xyz", 3)
+        if "rpy_deg" in d and "rpy" in d:
             raise _err(path, "give either rpy_deg or rpy, not both")
-        if "rpy_deg" in v:
-            pose[:3, :3] = _rpy(np.deg2rad(_vec(v["rpy_deg"], f"{path}.rpy_deg", 3)))
-        elif "rpy" in v:
-            pose[:3, :3] = _rpy(_vec(v["rpy"], f"{path}.rpy", 3))
+        if "rpy_deg" in d:
+            pose[:3, :3] = _rpy(np.deg2rad(_vec(d["rpy_deg"], f"{path}.rpy_deg", 3, -360.0, 360.0, "deg")))
+        elif "rpy" in d:
+            pose[:3, :3] = _rpy(_vec(d["rpy"], f"{path}.rpy", 3, -2 * np.pi, 2 * np.pi, "rad"))
         return pose
     if isinstance(v, list) and len(v) == 4:
-        pose = np.stack([_vec(row, f"{path}[{i}]", 4) for i, row in enumerate(v)])
-        rot = pose[:3, :3]
-        if (
-            not np.allclose(pose[3], [0, 0, 0, 1])
-            or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6)
-            or np.linalg.det(rot) < 0
-        ):
-            raise _err(path, "4x4 pose must have a proper rotation block and last row [0, 0, 0, 1]")
+        rows = [_vec(row, f"{path}[{i}]", 4) for i, row in enumerate(v)]
+        pose = np.stack(rows)
+        if not np.allclose(pose[3], [0, 0, 0, 1], atol=1e-9):
+            raise _err(f"{path}[3]", f"the last row must be [0, 0, 0, 1], got {pose[3].tolist()}")
+        for i in range(3):
+            _length(pose[i, 3], f"{path}[{i}][3]")
+        try:
+            pose[:3, :3] = check_rotation(pose[:3, :3], "the rotation block", ROTATION_TOL)
+        except InputError as exc:
+            raise _err(path, str(exc)) from exc
         return pose
-    raise _err(path, f"expected a pose ({{xyz: [..], rpy_deg: [..]}} or a 4x4 list), got {v!r}")
+    raise _err(path, f"expected a pose ({{xyz: [..], rpy_deg: [..]}} or a 4x4 list), got {_short(v)}")
 
 
-def _box(d: Any, path: str, name: str) -> BoxSpec:
-    if not isinstance(d, dict):
-        raise _err(path, f"expected a mapping with pose and size, got {d!r}")
+def _box(v: Any, path: str, name: str, keys: tuple[str, ...] = _BOX_KEYS) -> BoxSpec:
+    d = _mapping(v, path, keys, "a mapping with pose and size")
     return BoxSpec(
-        str(d.get("name", name)),
+        _text(d["name"], f"{path}.name") if "name" in d else name,
         parse_pose(_req(d, "pose", path), f"{path}.pose"),
-        _vec(_req(d, "size", path), f"{path}.size", 3, positive=True),
+        _lengths(_req(d, "size", path), f"{path}.size", 3, positive=True),
     )
 
 
-def _tool(d: Any, path: str) -> ToolModel:
-    if not isinstance(d, dict):
-        raise _err(path, f"expected a mapping, got {d!r}")
-    model = str(_req(d, "model", path))
-    kind = d.get("kind")
-    if "flange_to_tcp_m" not in d:
+def _payload(v: Any, path: str, robot: str) -> float:
+    rated = UR_PARAMS[robot].payload_kg
+    f = _num(v, path, 0.0, unit="kg")
+    if f > rated:
+        raise _err(path, f"{f:g} kg is above the {robot}'s rated payload {rated:g} kg")
+    return f
+
+
+def _tool(v: Any, path: str, robot: str) -> ToolModel:
+    if not isinstance(v, dict):
+        raise _err(path, f"expected a mapping, got {_short(v)}")
+    kind = v.get("kind")
+    if kind is not None and kind not in ("parallel", "suction"):
+        raise _err(f"{path}.kind", f"expected 'parallel' or 'suction', got {_short(kind)}")
+    if "flange_to_tcp_m" not in v:
         # a packaged gripper (kinematics.Gripper), optionally mounted through an adapter
-        unknown = set(d) - {"model", "kind", "mount", "payload_kg"}
-        if unknown:
+        extra = sorted(set(v) - set(_PACKAGED_GRIPPER_KEYS))
+        if extra and all(k in _CUSTOM_PARALLEL_KEYS or k in _CUSTOM_SUCTION_KEYS for k in extra):
             raise _err(
-                f"{path}.{sorted(unknown)[0]}",
+                _join(path, extra[0]),
                 "custom geometry keys need flange_to_tcp_m as well (a custom "
-                "gripper); for a packaged one give only model, mount and payload_kg",
+                "gripper); for a packaged one give only model, kind, mount and payload_kg",
             )
+        d = _mapping(v, path, _PACKAGED_GRIPPER_KEYS)
+        model = _text(_req(d, "model", path), f"{path}.model")
         try:
             gripper = Gripper.load(model)
         except NormposError as exc:
@@ -241,32 +369,46 @@ def _tool(d: Any, path: str) -> ToolModel:
         if kind is not None and kind != tool.kind:
             raise _err(f"{path}.kind", f"gripper {model!r} is a {tool.kind} gripper, the file says {kind!r}")
         if "payload_kg" in d:
-            object.__setattr__(tool, "payload_kg", _num(d["payload_kg"], f"{path}.payload_kg", 0.0))
+            object.__setattr__(tool, "payload_kg", _payload(d["payload_kg"], f"{path}.payload_kg", robot))
         return tool
-    if kind not in ("parallel", "suction"):
-        raise _err(f"{path}.kind", f"expected 'parallel' or 'suction', got {kind!r}")
-    flange_to_tcp = _num(d.get("flange_to_tcp_m", 0.15), f"{path}.flange_to_tcp_m", 0.0, 1.0)
-    payload = _num(d.get("payload_kg", 2.0), f"{path}.payload_kg", 0.0)
+    if kind is None:
+        raise _err(f"{path}.kind", "a custom gripper (flange_to_tcp_m given) needs kind: parallel or suction")
+    d = _mapping(v, path, _CUSTOM_PARALLEL_KEYS if kind == "parallel" else _CUSTOM_SUCTION_KEYS)
+    model = _text(_req(d, "model", path), f"{path}.model")
+
+    def length(key: str, default: float | None, lo: float, hi: float) -> float:
+        value = _req(d, key, path) if default is None else d.get(key, default)
+        return _length(value, f"{path}.{key}", lo, hi)
+
+    def body(default: list[float]) -> tuple[float, float, float]:
+        b = [
+            _length(x, f"{path}.body_size_m[{i}]", 1e-3, 2.0)
+            for i, x in enumerate(_list(d.get("body_size_m", default), f"{path}.body_size_m", 3))
+        ]
+        return (b[0], b[1], b[2])
+
+    flange_to_tcp = length("flange_to_tcp_m", 0.15, 0.0, 1.0)
+    payload = _payload(d.get("payload_kg", 2.0), f"{path}.payload_kg", robot)
     if kind == "parallel":
         tool = parallel_gripper(
             model,
-            stroke_m=_num(_req(d, "stroke_m", path), f"{path}.stroke_m", 1e-3, 1.0),
-            finger_length_m=_num(d.get("finger_length_m", 0.045), f"{path}.finger_length_m", 1e-3, 0.5),
+            stroke_m=length("stroke_m", None, 1e-3, 1.0),
+            finger_length_m=length("finger_length_m", 0.045, 1e-3, 0.5),
             flange_to_tcp_m=flange_to_tcp,
-            finger_width_m=_num(d.get("finger_width_m", 0.02), f"{path}.finger_width_m", 1e-3, 0.5),
-            finger_thickness_m=_num(d.get("finger_thickness_m", 0.01), f"{path}.finger_thickness_m", 1e-3, 0.5),
-            body_size_m=tuple(_vec(d.get("body_size_m", [0.14, 0.06, 0.09]), f"{path}.body_size_m", 3, True)),
-            min_opening_m=_num(d.get("min_opening_m", 0.0), f"{path}.min_opening_m", 0.0, 1.0),
-            grip_depth_m=_num(d.get("grip_depth_m", 0.015), f"{path}.grip_depth_m", 0.0, 0.5),
+            finger_width_m=length("finger_width_m", 0.02, 1e-3, 0.5),
+            finger_thickness_m=length("finger_thickness_m", 0.01, 1e-3, 0.5),
+            body_size_m=body([0.14, 0.06, 0.09]),
+            min_opening_m=length("min_opening_m", 0.0, 0.0, 1.0),
+            grip_depth_m=length("grip_depth_m", 0.015, 0.0, 0.5),
             payload_kg=payload,
         )
     else:
         tool = suction_tool(
             model,
             flange_to_tcp_m=flange_to_tcp,
-            cup_diameter_m=_num(d.get("cup_diameter_m", 0.03), f"{path}.cup_diameter_m", 1e-3, 0.5),
-            stem_diameter_m=_num(d.get("stem_diameter_m", 0.02), f"{path}.stem_diameter_m", 1e-3, 0.5),
-            body_size_m=tuple(_vec(d.get("body_size_m", [0.06, 0.06, 0.05]), f"{path}.body_size_m", 3, True)),
+            cup_diameter_m=length("cup_diameter_m", 0.03, 1e-3, 0.5),
+            stem_diameter_m=length("stem_diameter_m", 0.02, 1e-3, 0.5),
+            body_size_m=body([0.06, 0.06, 0.05]),
             payload_kg=payload,
         )
     if "mount" in d:
@@ -276,119 +418,156 @@ def _tool(d: Any, path: str) -> ToolModel:
     return tool
 
 
+def _joint_caps(v: Any, path: str, ceiling: FloatArray, unit: str, source: str) -> FloatArray:
+    """Per-joint caps from one number or 6; each in [1e-3, ceiling_j]."""
+    caps = np.full(6, _num(v, path, unit=unit)) if not isinstance(v, list) else _vec(v, path, 6, unit=unit)
+    for j in range(6):
+        where = path if not isinstance(v, list) else f"{path}[{j}]"
+        if caps[j] < 1e-3:
+            raise _err(where, f"{caps[j]:g} {unit} is below the smallest cap 0.001 {unit}")
+        if caps[j] > ceiling[j] * (1 + 1e-9):
+            one = " (one number caps every joint)" if not isinstance(v, list) else ""
+            raise _err(
+                where,
+                f"{caps[j]:g} {unit} is above {JOINT_NAMES[j]}'s ceiling {ceiling[j]:.4g} {unit} ({source}){one}",
+            )
+    return caps
+
+
+def _motion(v: Any, model: str) -> MotionLimits:
+    d = _mapping(v, "motion", _MOTION_KEYS)
+    rated = np.asarray(UR_PARAMS[model].velocity_limit, dtype=np.float64)
+    vel = _joint_caps(d.get("joint_velocity", 1.0), "motion.joint_velocity", rated, "rad/s", f"{model} rated speed")
+    acc = _joint_caps(
+        d.get("joint_acceleration", 2.0),
+        "motion.joint_acceleration",
+        np.full(6, MAX_JOINT_ACCELERATION),
+        "rad/s^2",
+        "ur_rtde's UR_JOINT_ACCELERATION_MAX; UR rates no higher joint acceleration",
+    )
+    tcp_v = d.get("tcp_speed_m_s", 0.25)
+    tcp_speed = _num(tcp_v, "motion.tcp_speed_m_s", unit="m/s")
+    if not 1e-3 <= tcp_speed <= MAX_TCP_SPEED:
+        raise _err(
+            "motion.tcp_speed_m_s",
+            f"{tcp_v!r} m/s is outside [0.001, {MAX_TCP_SPEED:g}] m/s (ur_rtde's UR_TOOL_VELOCITY_MAX)",
+        )
+    tcp_a = d.get("tcp_acceleration_m_s2", 2.0)
+    tcp_acc = _num(tcp_a, "motion.tcp_acceleration_m_s2", unit="m/s^2")
+    if not 1e-3 <= tcp_acc <= MAX_TCP_ACCELERATION:
+        raise _err(
+            "motion.tcp_acceleration_m_s2",
+            f"{tcp_a!r} m/s^2 is outside [0.001, {MAX_TCP_ACCELERATION:g}] m/s^2 (ur_rtde's UR_TOOL_ACCELERATION_MAX)",
+        )
+    ws = _mapping(d.get("workspace", {"min": [-5, -5, -5], "max": [5, 5, 5]}), "motion.workspace", _WORKSPACE_KEYS)
+    ws_min = _lengths(_req(ws, "min", "motion.workspace"), "motion.workspace.min", 3)
+    ws_max = _lengths(_req(ws, "max", "motion.workspace"), "motion.workspace.max", 3)
+    if np.any(ws_min >= ws_max):
+        raise _err("motion.workspace", f"min {ws_min.tolist()} must be below max {ws_max.tolist()}")
+    return MotionLimits(vel, acc, tcp_speed, ws_min, ws_max, tcp_acc)
+
+
+def _camera_floor(floor_z: float | None, boxes: Iterable[BoxSpec], bin_spec: BinSpec | None) -> float | None:
+    supports = [float(b.world_from_box[2, 3] + b.size[2] / 2) for b in boxes if b.name in ("table", "conveyor")]
+    if bin_spec is not None:
+        supports.append(float(bin_spec.world_from_bin[2, 3]))
+    levels = ([] if floor_z is None else [floor_z]) + ([min(supports)] if supports else [])
+    return max(levels) if levels else None
+
+
 def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = None) -> CellConfig:
-    """Validate a parsed cell mapping; see docs/cells.md for the schema."""
+    """Validate a parsed cell mapping; see docs/cells.md for the schema. Every key at every level is checked
+    (unknown keys are errors naming their full path), every number for type, finiteness and range."""
     if not isinstance(data, dict):
         raise CellConfigError(f"a cell file must hold a mapping at the top level, got {type(data).__name__}")
-    unknown = set(data) - _TOP_KEYS
-    if unknown:
-        raise _err(sorted(unknown)[0], f"unknown key; expected one of {sorted(_TOP_KEYS)}")
-    robot = _req(data, "robot", "")
-    if not isinstance(robot, dict):
-        raise _err("robot", f"expected a mapping, got {robot!r}")
-    model = str(_req(robot, "model", "robot")).lower()
+    _mapping(data, "", _TOP_KEYS)
+    robot = _mapping(_req(data, "robot", ""), "robot", _ROBOT_KEYS)
+    model = _text(_req(robot, "model", "robot"), "robot.model").lower()
     if model not in UR_PARAMS:
         raise _err("robot.model", f"unknown robot {model!r}; known: {', '.join(UR_PARAMS)}")
+    serial = robot.get("serial_number")
+    if serial is not None:
+        if isinstance(serial, bool) or not isinstance(serial, str | int):
+            raise _err("robot.serial_number", f"expected text, got {type(serial).__name__} {_short(serial)}")
+        serial = _text(str(serial), "robot.serial_number")
+    floor_z = None if "floor_z" not in data else _length(data["floor_z"], "floor_z")
     world_from_base = parse_pose(robot.get("world_from_base", {"xyz": [0, 0, 0]}), "robot.world_from_base")
-    home = _vec(robot.get("home", [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]), "robot.home", 6)
+    if floor_z is not None and world_from_base[2, 3] < floor_z:
+        raise _err("robot.world_from_base", f"the base at z = {world_from_base[2, 3]:g} m is under floor_z {floor_z:g}")
     params = UR_PARAMS[model]
+    home = _vec(robot.get("home", [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]), "robot.home", 6, unit="rad")
     lim = np.minimum(np.asarray(params.position_limit), 2 * np.pi)
     if np.any(np.abs(home) > lim):
         raise _err("robot.home", f"home {home.tolist()} is outside the joint limits +-{lim.tolist()} rad")
-    tool = _tool(_req(data, "gripper", ""), "gripper")
-
-    camera = data.get("camera")
-    world_from_camera = None
-    if camera is not None:
-        if not isinstance(camera, dict):
-            raise _err("camera", f"expected a mapping, got {camera!r}")
-        if "world_from_camera" in camera:
-            world_from_camera = parse_pose(camera["world_from_camera"], "camera.world_from_camera")
-        elif camera.get("from_scene", False) is not True:
-            raise _err("camera", "give world_from_camera or from_scene: true")
+    tool = _tool(_req(data, "gripper", ""), "gripper", model)
 
     boxes: list[BoxSpec] = []
     if "table" in data:
         boxes.append(_box(data["table"], "table", "table"))
     bin_spec = None
     if "bin" in data:
-        b = data["bin"]
-        if not isinstance(b, dict):
-            raise _err("bin", f"expected a mapping, got {b!r}")
+        b = _mapping(data["bin"], "bin", _BIN_KEYS)
         bin_spec = BinSpec(
             parse_pose(_req(b, "pose", "bin"), "bin.pose"),
-            _vec(_req(b, "inner_size", "bin"), "bin.inner_size", 3, positive=True),
-            _num(b.get("wall_m", 0.01), "bin.wall_m", 1e-3, 0.2),
+            _lengths(_req(b, "inner_size", "bin"), "bin.inner_size", 3, positive=True),
+            _length(b.get("wall_m", 0.01), "bin.wall_m", 1e-3, 0.2),
         )
         boxes.extend(bin_spec.boxes())
     if "conveyor" in data:
         boxes.append(_box(data["conveyor"], "conveyor", "conveyor"))
     fixtures = data.get("fixtures", [])
     if not isinstance(fixtures, list):
-        raise _err("fixtures", f"expected a list, got {fixtures!r}")
+        raise _err("fixtures", f"expected a list, got {_short(fixtures)}")
     for i, f in enumerate(fixtures):
-        boxes.append(_box(f, f"fixtures[{i}]", f"fixture_{i}"))
+        boxes.append(_box(f, f"fixtures[{i}]", f"fixture_{i}", _FIXTURE_KEYS))
     names = [b.name for b in boxes]
     if len(set(names)) != len(names):
         raise _err("fixtures", f"box names must be unique, got {names}")
+
+    world_from_camera = None
+    if "camera" in data:
+        camera = _mapping(data["camera"], "camera", _CAMERA_KEYS)
+        from_scene = camera.get("from_scene", False)
+        if not isinstance(from_scene, bool):
+            raise _err("camera.from_scene", f"expected true or false, got {_short(from_scene)}")
+        if "world_from_camera" in camera and from_scene:
+            raise _err("camera", "give world_from_camera or from_scene: true, not both")
+        if "world_from_camera" in camera:
+            pose = parse_pose(camera["world_from_camera"], "camera.world_from_camera")
+            try:
+                world_from_camera = check_world_from_camera(
+                    pose, "camera.world_from_camera", floor_z_m=_camera_floor(floor_z, boxes, bin_spec)
+                )
+            except InputError as exc:
+                raise CellConfigError(str(exc)) from exc
+        elif not from_scene:
+            raise _err("camera", "give world_from_camera or from_scene: true")
 
     places_raw = _req(data, "place", "")
     if not isinstance(places_raw, list) or not places_raw:
         raise _err("place", "expected a non-empty list of place poses")
     places = []
     for i, p in enumerate(places_raw):
-        if not isinstance(p, dict):
-            raise _err(f"place[{i}]", f"expected a mapping, got {p!r}")
+        pd = _mapping(p, f"place[{i}]", _PLACE_KEYS)
+        pose = parse_pose(_req(pd, "world_from_tcp", f"place[{i}]"), f"place[{i}].world_from_tcp")
+        if floor_z is not None and pose[2, 3] < floor_z:
+            raise _err(f"place[{i}].world_from_tcp", f"z = {pose[2, 3]:g} m is under floor_z {floor_z:g} m")
         places.append(
             PlaceSpec(
-                str(p.get("name", f"place_{i}")),
-                parse_pose(_req(p, "world_from_tcp", f"place[{i}]"), f"place[{i}].world_from_tcp"),
-                _num(p.get("approach_m", 0.1), f"place[{i}].approach_m", 0.0, 1.0),
+                _text(pd["name"], f"place[{i}].name") if "name" in pd else f"place_{i}",
+                pose,
+                _length(pd.get("approach_m", 0.1), f"place[{i}].approach_m", 0.0, 1.0),
             )
         )
 
-    templates = data.get("templates")
     templates_path = None
-    if templates is not None:
-        if not isinstance(templates, str):
-            raise _err("templates", f"expected a path string, got {templates!r}")
-        templates_path = (Path(base_dir) / templates).resolve()
+    if "templates" in data:
+        templates_path = (Path(base_dir) / _text(data["templates"], "templates")).resolve()
 
-    motion = data.get("motion", {})
-    if not isinstance(motion, dict):
-        raise _err("motion", f"expected a mapping, got {motion!r}")
-    vel_cap = motion.get("joint_velocity", 1.0)
-    vel = np.minimum(
-        np.full(6, _num(vel_cap, "motion.joint_velocity", 1e-3))
-        if not isinstance(vel_cap, list)
-        else _vec(vel_cap, "motion.joint_velocity", 6, True),
-        np.asarray(params.velocity_limit),
-    )
-    acc_cap = motion.get("joint_acceleration", 2.0)
-    acc = (
-        np.full(6, _num(acc_cap, "motion.joint_acceleration", 1e-3))
-        if not isinstance(acc_cap, list)
-        else _vec(acc_cap, "motion.joint_acceleration", 6, True)
-    )
-    ws = motion.get("workspace", {"min": [-5, -5, -5], "max": [5, 5, 5]})
-    if not isinstance(ws, dict):
-        raise _err("motion.workspace", f"expected a mapping with min and max, got {ws!r}")
-    ws_min = _vec(_req(ws, "min", "motion.workspace"), "motion.workspace.min", 3)
-    ws_max = _vec(_req(ws, "max", "motion.workspace"), "motion.workspace.max", 3)
-    if np.any(ws_min >= ws_max):
-        raise _err("motion.workspace", f"min {ws_min.tolist()} must be below max {ws_max.tolist()}")
-    limits = MotionLimits(
-        vel, acc, _num(motion.get("tcp_speed_m_s", 0.25), "motion.tcp_speed_m_s", 1e-3, 5.0), ws_min, ws_max
-    )
-
-    planning = data.get("planning", {})
-    if not isinstance(planning, dict):
-        raise _err("planning", f"expected a mapping, got {planning!r}")
-    unknown_p = set(planning) - {"entry_clearance_m", "lift_m", "voxel_m"}
-    if unknown_p:
-        raise _err(f"planning.{sorted(unknown_p)[0]}", "unknown key; expected entry_clearance_m, lift_m, voxel_m")
+    limits = _motion(data.get("motion", {}), model)
+    planning = _mapping(data.get("planning", {}), "planning", _PLANNING_KEYS)
     return CellConfig(
-        name=str(data.get("name", source.stem if source else "cell")),
+        name=_text(data["name"], "name") if "name" in data else (source.stem if source else "cell"),
         robot_model=model,
         world_from_base=world_from_base,
         home_q=home,
@@ -399,8 +578,10 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         places=tuple(places),
         templates_path=templates_path,
         motion=limits,
-        entry_clearance_m=_num(planning.get("entry_clearance_m", 0.05), "planning.entry_clearance_m", 0.0, 1.0),
-        lift_m=_num(planning.get("lift_m", 0.08), "planning.lift_m", 0.0, 1.0),
-        voxel_m=_num(planning.get("voxel_m", 0.01), "planning.voxel_m", 1e-3, 0.2),
+        entry_clearance_m=_length(planning.get("entry_clearance_m", 0.05), "planning.entry_clearance_m", 0.0, 1.0),
+        lift_m=_length(planning.get("lift_m", 0.08), "planning.lift_m", 0.0, 1.0),
+        voxel_m=_length(planning.get("voxel_m", 0.01), "planning.voxel_m", 1e-3, 0.2),
         source=source,
+        robot_serial=serial,
+        floor_z=floor_z,
     )

@@ -21,7 +21,8 @@ from normpos_grasp.errors import InputError, MissingDependency, NormposError, Se
 from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
 from normpos_grasp.measure.depth import DepthFillOptions
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances, normpos_to_dict
-from normpos_grasp.perception.base import Instance, Segmenter
+from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.records.instance import Instance
 
 
 def register(subparsers: Any) -> None:

@@ -58,8 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from functools import partial
 
-    from normpos_grasp.perception.train.data import cell_samples, frame_samples, pile_samples
-    from normpos_grasp.perception.train.trainer import TrainOptions, generate_sample_shards, generate_shards, train
+    from normpos_grasp.training.data import cell_samples, frame_samples, pile_samples
+    from normpos_grasp.training.trainer import TrainOptions, generate_sample_shards, generate_shards, train
 
     h, w = args.input_size
     if h % 32 or w % 32:

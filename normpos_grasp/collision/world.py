@@ -26,8 +26,8 @@ from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray
 if TYPE_CHECKING:
     import trimesh
 
-    from normpos_grasp.collision.tool import ToolModel
-    from normpos_grasp.planning.arm import ArmModel
+    from normpos_grasp.kinematics.arm import ArmModel
+    from normpos_grasp.records.tool import ToolModel
 
 logger = logging.getLogger(__name__)
 

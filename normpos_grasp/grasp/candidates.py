@@ -12,32 +12,10 @@ from scipy.spatial import ConvexHull, QhullError
 
 from normpos_grasp.geometry.transforms import rotation_from_rotvec, transform_points
 from normpos_grasp.grasp.synthesis import SynthesisOptions, _cylinder_axis, _obb, synthesize, tcp_frame
-from normpos_grasp.measure.normpos import NormPosition
-from normpos_grasp.templates.model import GraspAnnotation, Template
+from normpos_grasp.records.grasp import GraspCandidate
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.template import GraspAnnotation, Template
 from normpos_grasp.typing import FloatArray
-
-
-@dataclass(frozen=True, eq=False)
-class GraspCandidate:
-    """One way to pick one object.
-
-    target: index of the object in the planner's target list; template: its template name.
-    grasp_id: annotation id (or synthesis id); source: 'annotated' or 'synthesized'; scheme: 'parallel' or
-    'suction'; world_from_tcp (4, 4); opening_m: jaw opening before closing, m; approach_m / retreat_m: straight
-    line lengths, m; quality in [0, 1] (geometry of the grasp); priority: template priority (higher first).
-    """
-
-    target: int
-    template: str
-    grasp_id: str
-    source: str
-    scheme: str
-    world_from_tcp: FloatArray
-    opening_m: float
-    approach_m: float
-    retreat_m: float
-    quality: float
-    priority: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from normpos_grasp.templates.model import GraspAnnotation, Template
+from normpos_grasp.records.template import GraspAnnotation, Template
 from normpos_grasp.typing import FloatArray
 
 

@@ -1,6 +1,7 @@
 """Robot kinematics for UR arms: parameter table, FK/Jacobians (pinocchio), analytic and differential IK,
 grippers and collision primitives. Differential IK (mink) lives in `normpos_grasp.kinematics.diff_ik`."""
 
+from normpos_grasp.kinematics.arm import ArmModel, LinkShape
 from normpos_grasp.kinematics.dh import DHCalibration, DHChain
 from normpos_grasp.kinematics.gripper import FingerSpec, Gripper
 from normpos_grasp.kinematics.robot import ROBOT_NAMES, IKLabel, IKOptions, Robot, SingularityDistance
@@ -11,6 +12,7 @@ __all__ = [
     "ARM_LINKS",
     "ROBOT_NAMES",
     "UR_PARAMS",
+    "ArmModel",
     "CollisionShape",
     "DHCalibration",
     "DHChain",
@@ -18,6 +20,7 @@ __all__ = [
     "Gripper",
     "IKLabel",
     "IKOptions",
+    "LinkShape",
     "Robot",
     "SingularityDistance",
     "URParams",

@@ -1,5 +1,5 @@
 """Norm-position measurement: depth filling, back-projection of masks to world points, object summaries."""
 
-from normpos_grasp.measure.normpos import NormPosition, OrientedBox
+from normpos_grasp.records.normpos import NormPosition, OrientedBox
 
 __all__ = ["NormPosition", "OrientedBox"]

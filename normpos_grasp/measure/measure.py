@@ -20,8 +20,8 @@ from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError, MeasurementError
 from normpos_grasp.geometry.transforms import transform_points
 from normpos_grasp.measure.depth import DepthFillOptions, fill_depth
-from normpos_grasp.measure.normpos import NormPosition, OrientedBox
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.normpos import NormPosition, OrientedBox
 from normpos_grasp.typing import ArrayLike, BoolArray, Float32Array, FloatArray, IntArray
 
 logger = logging.getLogger(__name__)

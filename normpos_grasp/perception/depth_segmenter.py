@@ -25,7 +25,7 @@ from scipy import ndimage
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.errors import InputError
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)

@@ -17,7 +17,7 @@ import numpy as np
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.errors import DatasetError, InputError, SegmentationError
 from normpos_grasp.io.bop import BopModel, BopScene, load_mesh, read_models
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
 
 logger = logging.getLogger(__name__)
 

@@ -28,8 +28,8 @@ import numpy as np
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.errors import InputError, ModelFormatError
-from normpos_grasp.perception.base import Instance
 from normpos_grasp.perception.mask_refine import MaskRefineOptions, SoftMask, refine_masks
+from normpos_grasp.records.instance import Instance
 from normpos_grasp.typing import Float32Array, FloatArray, UInt8Array
 
 logger = logging.getLogger(__name__)

@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from normpos_grasp.geometry.transforms import invert_pose
-from normpos_grasp.grasp.candidates import GraspCandidate
-from normpos_grasp.planning.arm import ArmModel
+from normpos_grasp.kinematics.arm import ArmModel
+from normpos_grasp.records.grasp import GraspCandidate
+from normpos_grasp.records.plan import Evaluation, Target
 from normpos_grasp.typing import FloatArray, IntArray
 
 if TYPE_CHECKING:
@@ -72,37 +73,6 @@ class EvaluationOptions:
     raise_step_m: float = 0.001
     min_contact_m: float = 0.005
     opening_slack_m: float = 0.012
-
-
-@dataclass(frozen=True, eq=False)
-class Evaluation:
-    """Verdict on one candidate: feasible or the reason (and the pose it failed at, one of POSE_NAMES);
-    world_from_tcp (5, 4, 4) and q (5, 6) rad at the five poses when IK succeeded; branch: IK branch index;
-    score: ranking score (higher is better)."""
-
-    candidate: GraspCandidate
-    feasible: bool
-    reason: str = ""
-    pose: str = ""
-    world_from_tcp: FloatArray | None = None
-    q: FloatArray | None = None
-    branch: int = -1
-    score: float = -np.inf
-    prior: float = 0.0
-
-
-@dataclass(frozen=True, eq=False)
-class Target:
-    """An object to pick: `name` (world element name), its mesh's lowest point below... `world_from_object`,
-    `template` mesh (for the held object), `height_m` (world z of its centre), mass_kg."""
-
-    name: str
-    world_from_object: FloatArray
-    mesh: object
-    height_m: float
-    mass_kg: float = 0.1
-    instance_id: int = 0
-    template: str = ""
 
 
 @dataclass(frozen=True, eq=False)

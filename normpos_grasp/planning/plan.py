@@ -8,34 +8,32 @@ within the cell's caps. No feasible grasp is a result (status 'no_feasible_grasp
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from normpos_grasp.cell.config import CellConfig, PlaceSpec
-from normpos_grasp.collision.tool import ToolModel
 from normpos_grasp.collision.world import CollisionWorld
 from normpos_grasp.errors import PlanningError
 from normpos_grasp.geometry.transforms import invert_pose
-from normpos_grasp.grasp.candidates import CandidateOptions, GraspCandidate, candidates_for_object, primitive_template
-from normpos_grasp.measure.normpos import NormPosition
-from normpos_grasp.planning.arm import ArmModel
-from normpos_grasp.planning.evaluate import Evaluation, EvaluationOptions, Target, evaluate_candidates
+from normpos_grasp.grasp.candidates import CandidateOptions, candidates_for_object, primitive_template
+from normpos_grasp.kinematics.arm import ArmModel
+from normpos_grasp.planning.evaluate import EvaluationOptions, evaluate_candidates
 from normpos_grasp.planning.rrt import MotionOptions, plan_joint_motion
-from normpos_grasp.planning.timing import TimingOptions, Trajectory, time_parameterise
-from normpos_grasp.templates.model import TemplateFit
+from normpos_grasp.planning.timing import TimingOptions, time_parameterise
+from normpos_grasp.records.grasp import GraspCandidate
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.plan import Evaluation, PickPlan, Target, Waypoint
+from normpos_grasp.records.template import TemplateFit
 from normpos_grasp.typing import BoolArray, FloatArray
 
 logger = logging.getLogger(__name__)
 
-PLAN_FORMAT = "normpos-grasp/plan@1"
 WAYPOINTS = ("home", "entry", "pre_grasp", "grasp", "lift", "retreat", "pre_place", "place", "post_place")
 
 
@@ -68,95 +66,6 @@ class PlanOptions:
     evaluation: EvaluationOptions = EvaluationOptions()
     motion: MotionOptions = MotionOptions()
     timing: TimingOptions = TimingOptions()
-
-
-@dataclass(frozen=True, eq=False)
-class Waypoint:
-    """A named configuration: q (6,) rad and the TCP pose world_from_tcp (4, 4) it reaches."""
-
-    name: str
-    q: FloatArray
-    world_from_tcp: FloatArray
-
-
-@dataclass(frozen=True, eq=False)
-class PickPlan:
-    """Result of `plan_pick`. status: 'ok' or 'no_feasible_grasp'. chosen: the evaluation of the grasp taken.
-    counts: rejection counts by reason over all candidates. timing_ms: stage times."""
-
-    status: str
-    robot: str
-    world_from_base: FloatArray
-    tool: ToolModel
-    targets: tuple[Target, ...]
-    chosen: Evaluation | None
-    waypoints: tuple[Waypoint, ...]
-    trajectory: Trajectory | None
-    evaluations: tuple[Evaluation, ...]
-    counts: dict[str, int]
-    n_feasible: int
-    timing_ms: dict[str, float] = field(default_factory=dict)
-    place: str = ""
-
-    def to_json(self) -> dict[str, Any]:
-        """The documented plan.json mapping (docs/grasping.md)."""
-        opening = self.chosen.candidate.opening_m if self.chosen is not None else 0.0
-        rejected = {k: v for k, v in sorted(self.counts.items()) if k != "not_evaluated"}
-        out: dict[str, Any] = {
-            "format": PLAN_FORMAT,
-            "status": self.status,
-            "robot": self.robot,
-            "world_from_base": np.asarray(self.world_from_base).tolist(),
-            "tool": self.tool.to_json(opening),
-            "target": None,
-            "grasp": None,
-            "joint_waypoints": [
-                {"name": w.name, "q": [float(v) for v in w.q], "world_from_tcp": np.asarray(w.world_from_tcp).tolist()}
-                for w in self.waypoints
-            ],
-            "trajectory": None,
-            "candidates": {
-                "total": len(self.evaluations),
-                "evaluated": sum(1 for e in self.evaluations if e.reason != "not_evaluated"),
-                "feasible": self.n_feasible,
-                "not_evaluated": int(self.counts.get("not_evaluated", 0)),
-                "rejected_by_reason": rejected,
-            },
-            "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
-        }
-        if self.chosen is not None:
-            c = self.chosen.candidate
-            t = self.targets[c.target]
-            out["target"] = {
-                "instance": int(t.instance_id),
-                "name": t.name,
-                "template": t.template,
-                "world_from_object": np.asarray(t.world_from_object).tolist(),
-            }
-            out["grasp"] = {
-                "id": c.grasp_id,
-                "scheme": c.scheme,
-                "source": c.source,
-                "world_from_tcp": np.asarray(c.world_from_tcp).tolist(),
-                "opening_m": float(c.opening_m),
-                "quality": float(c.quality),
-                "score": float(self.chosen.score),
-                "place": self.place,
-            }
-        if self.trajectory is not None:
-            out["trajectory"] = {
-                "dt_s": float(np.median(np.diff(self.trajectory.t))) if len(self.trajectory.t) > 1 else 0.0,
-                "duration_s": self.trajectory.duration_s,
-                "samples": [
-                    {"t": round(float(t), 6), "q": [round(float(v), 9) for v in q]}
-                    for t, q in zip(self.trajectory.t, self.trajectory.q, strict=True)
-                ],
-            }
-        return out
-
-    def save(self, path: str | Path) -> None:
-        """Write plan.json."""
-        Path(path).write_text(json.dumps(self.to_json(), indent=1), encoding="utf-8")
 
 
 def build_world(

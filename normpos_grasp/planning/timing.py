@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from normpos_grasp.errors import PlanningError
+from normpos_grasp.records.plan import Trajectory
 from normpos_grasp.typing import FloatArray
 
 
@@ -23,19 +24,6 @@ class TimingOptions:
 
     dt_s: float = 0.02
     safety: float = 0.9
-
-
-@dataclass(frozen=True, eq=False)
-class Trajectory:
-    """Time-stamped joint samples: t (M,) s from 0, q (M, 6) rad, qd (M, 6) rad/s."""
-
-    t: FloatArray
-    q: FloatArray
-    qd: FloatArray
-
-    @property
-    def duration_s(self) -> float:
-        return float(self.t[-1]) if len(self.t) else 0.0
 
 
 def _trapezoid(length: float, v: float, a: float) -> tuple[float, float, float]:

@@ -10,7 +10,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.geometry.transforms import transform_points
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
 from normpos_grasp.report.scene3d import palette_color
 from normpos_grasp.typing import FloatArray, UInt8Array
 

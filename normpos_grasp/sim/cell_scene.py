@@ -14,10 +14,10 @@ import numpy as np
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.cameras import camera_intrinsics
 from normpos_grasp.sim.parts import default_part_library
 from normpos_grasp.sim.scene import SceneLayout, SceneOptions, compose_scene
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
 
 

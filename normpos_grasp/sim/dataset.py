@@ -18,13 +18,13 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.cameras import CameraOptions, sample_camera
 from normpos_grasp.sim.parts import default_part_library
 from normpos_grasp.sim.render import Rendering, SceneRenderer, make_renderer
 from normpos_grasp.sim.scene import SceneLayout, SceneOptions, compose_scene
 from normpos_grasp.sim.sensor import SensorModel, sensor_preset
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)

@@ -15,7 +15,7 @@ import numpy as np
 
 from normpos_grasp.errors import MeshError
 from normpos_grasp.geometry.transforms import make_pose
-from normpos_grasp.templates.model import Symmetry, Template
+from normpos_grasp.records.template import Symmetry, Template
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:

@@ -30,9 +30,9 @@ import numpy as np
 
 from normpos_grasp.errors import InputError, SimulationError
 from normpos_grasp.geometry.transforms import invert_pose, make_pose, rotation_angle
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics_decompose import DecompositionOptions, convex_decomposition
 from normpos_grasp.sim.physics_suction import SealCheck, SealOptions, check_seal, vacuum_force_n
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
 from normpos_grasp.validation import as_float_array, check_pose
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from normpos_grasp.errors import InputError, SimulationError
 from normpos_grasp.geometry.transforms import make_pose
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import (
     GripperSpec,
     PhysicsOptions,
@@ -29,7 +30,6 @@ from normpos_grasp.sim.physics import (
     _static_geoms,
     collision_pieces,
 )
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
 from normpos_grasp.validation import as_float_array, check_pose
 

@@ -17,8 +17,8 @@ import numpy as np
 
 from normpos_grasp.errors import InputError, SimulationError
 from normpos_grasp.geometry.transforms import make_pose, random_rotation, rotation_from_quaternion
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.parts import PART_COLORS
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:

@@ -31,8 +31,8 @@ import numpy as np
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.geometry.transforms import make_pose, transform_points
 from normpos_grasp.planning.evaluate import EvaluationOptions
+from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)
@@ -368,7 +368,7 @@ def _plan_nudge(
     everything from 8 cm above down to the start (jaws closing across or along the push), and the hand must stay
     clear of the cell over the push (`push_m`, else half of it).
     Returns (world_from_tcp (4, 4), push (3,)) or None."""
-    from normpos_grasp.planning.arm import ArmModel
+    from normpos_grasp.kinematics.arm import ArmModel
     from normpos_grasp.planning.plan import PlanOptions, build_world
 
     targets = list(plan.targets)

@@ -1,6 +1,6 @@
 """CAD templates (known structure) and pose fitting of templates to measured norm-positions."""
 
-from normpos_grasp.templates.model import GraspAnnotation, Symmetry, Template, TemplateFit
+from normpos_grasp.records.template import GraspAnnotation, Symmetry, Template, TemplateFit
 
 __all__ = [
     "FitContext",

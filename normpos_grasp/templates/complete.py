@@ -12,8 +12,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from normpos_grasp.errors import InputError
-from normpos_grasp.measure.normpos import NormPosition
-from normpos_grasp.templates.model import TemplateFit
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.template import TemplateFit
 from normpos_grasp.templates.prepared import prepare
 from normpos_grasp.typing import BoolArray, FloatArray
 

@@ -15,8 +15,8 @@ import numpy as np
 
 from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.kabsch import kabsch
+from normpos_grasp.records.template import Template
 from normpos_grasp.templates.features import batched_kabsch
-from normpos_grasp.templates.model import Template
 from normpos_grasp.typing import ArrayLike, FloatArray
 
 

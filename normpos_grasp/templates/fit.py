@@ -25,12 +25,12 @@ from scipy.spatial import cKDTree
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.errors import FitRejected, InputError, TemplateError
 from normpos_grasp.geometry.transforms import invert_pose
-from normpos_grasp.measure.normpos import NormPosition
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.template import Template, TemplateFit
 from normpos_grasp.templates import kernels
 from normpos_grasp.templates.control_points import control_point_hypotheses
 from normpos_grasp.templates.features import fpfh, ransac_hypotheses, voxel_downsample
 from normpos_grasp.templates.icp import icp
-from normpos_grasp.templates.model import Template, TemplateFit
 from normpos_grasp.templates.prepared import PreparedTemplate, prepare
 from normpos_grasp.templates.scoring import PoseScore, consistency_neighbours, evaluate, score_bounds
 from normpos_grasp.typing import FloatArray, IntArray

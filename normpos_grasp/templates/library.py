@@ -32,8 +32,9 @@ import yaml
 
 from normpos_grasp.errors import InputError, MeshError, TemplateError
 from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec, rotation_to_rotvec
+from normpos_grasp.io.yaml_safe import load_yaml_file
+from normpos_grasp.records.template import SHAPE_CLASSES, GraspAnnotation, Symmetry, Template
 from normpos_grasp.templates.mesh_check import MeshReport, check_mesh
-from normpos_grasp.templates.model import SHAPE_CLASSES, GraspAnnotation, Symmetry, Template
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)
@@ -129,9 +130,9 @@ def load_template(folder: str | Path, *, repair: bool = True) -> Template:
     if not spec_path.is_file():
         raise TemplateError(f"'{folder}' has no {TEMPLATE_FILE}")
     try:
-        spec = yaml.safe_load(spec_path.read_text())
+        spec = load_yaml_file(spec_path)
     except yaml.YAMLError as exc:
-        raise TemplateError(f"{spec_path}: invalid YAML: {exc}") from exc
+        raise TemplateError(str(exc)) from exc  # one line: file:line:col: problem
     if not isinstance(spec, dict):
         raise TemplateError(f"{spec_path}: expected a mapping at the top level, got {type(spec).__name__}")
     where = str(spec_path)

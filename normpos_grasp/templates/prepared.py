@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-from normpos_grasp.templates.model import Template
+from normpos_grasp.records.template import Template
 
 if TYPE_CHECKING:
     import trimesh

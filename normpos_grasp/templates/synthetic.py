@@ -14,8 +14,8 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.camera.render import render
-from normpos_grasp.measure.normpos import NormPosition, OrientedBox
-from normpos_grasp.templates.model import Template
+from normpos_grasp.records.normpos import NormPosition, OrientedBox
+from normpos_grasp.records.template import Template
 from normpos_grasp.typing import FloatArray
 
 

@@ -18,8 +18,8 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.geometry.transforms import make_pose, random_rotation
+from normpos_grasp.records.template import Symmetry, Template, TemplateFit
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many
-from normpos_grasp.templates.model import Symmetry, Template, TemplateFit
 from normpos_grasp.templates.synthetic import render_views
 
 logger = logging.getLogger(__name__)

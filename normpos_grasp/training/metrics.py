@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from normpos_grasp.perception.base import Instance
+from normpos_grasp.records.instance import Instance
 from normpos_grasp.typing import FloatArray
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from normpos_grasp.errors import DatasetError, MissingDependency
 from normpos_grasp.perception.onnx_segmenter import CONF_METADATA_KEY, DEPTH_METADATA_KEY, DepthChannelSpec
-from normpos_grasp.perception.train.data import (
+from normpos_grasp.training.data import (
     CLASS_NAMES,
     Sample,
     pack_sample,
@@ -178,7 +178,7 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
     import torch
     from torch.nn import functional as F
 
-    from normpos_grasp.perception.train.model import SegNet, anchor_centres
+    from normpos_grasp.training.model import SegNet, anchor_centres
 
     torch.manual_seed(options.seed)
     torch.set_num_threads(options.threads)
@@ -326,7 +326,7 @@ def export_onnx(net: object, path: Path, options: TrainOptions, conf_threshold: 
     import onnx
     import torch
 
-    from normpos_grasp.perception.train.model import ExportWrapper, SegNet
+    from normpos_grasp.training.model import ExportWrapper, SegNet
 
     assert isinstance(net, SegNet)
     net.eval()

@@ -17,8 +17,8 @@ import numpy as np
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import DatasetError
-from normpos_grasp.perception.base import Instance
 from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, preprocess
+from normpos_grasp.records.instance import Instance
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)
