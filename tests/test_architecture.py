@@ -167,7 +167,6 @@ def upward_imports(edges: Edges, layers: tuple[str, ...] = LAYERS) -> list[str]:
 def test_every_unit_has_a_layer() -> None:
     units, _ = import_graph()
     assert sorted(units - set(LAYERS)) == [], "new package: place it in LAYERS"
-    assert sorted(set(LAYERS) - units) == [], "LAYERS names a package that no longer exists"
     assert len(set(LAYERS)) == len(LAYERS)
 
 
