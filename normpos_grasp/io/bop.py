@@ -29,6 +29,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import DatasetError, InputError, MeshError
+from normpos_grasp.io.ply import write_mesh_ply
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, UInt8Array, UInt16Array
 from normpos_grasp.validation import as_float_array, check_pose
 
@@ -167,7 +168,8 @@ def write_models(
     models_dir: str | Path,
     models: Sequence[tuple[int, Any, ArrayLike | None, Sequence[tuple[ArrayLike, ArrayLike]] | None]],
 ) -> None:
-    """Write `obj_XXXXXX.ply` (mm, binary) and `models_info.json` for meshes given in metres.
+    """Write `obj_XXXXXX.ply` (mm, binary, triangles: see `io.ply.write_mesh_ply`) and `models_info.json` for
+    meshes given in metres.
 
     Args:
         models_dir: target folder (created).
@@ -184,10 +186,9 @@ def write_models(
         verts = np.asarray(mesh.vertices, dtype=np.float64)
         if verts.ndim != 2 or len(verts) == 0 or not np.all(np.isfinite(verts)):
             raise MeshError(f"mesh of obj_id {obj_id} has no vertices or non-finite ones")
-        mm = mesh.copy()
-        mm.apply_scale(1000.0)
-        data = mm.export(file_type="ply", encoding="binary")
-        _atomic_write(root / f"obj_{obj_id:06d}.ply", data if isinstance(data, bytes) else data.encode())
+        # triangles only, no face properties (an STL's per-face attributes would break the BOP toolkit's reader)
+        normals = np.asarray(mesh.vertex_normals, dtype=np.float64)
+        write_mesh_ply(root / f"obj_{obj_id:06d}.ply", verts * 1000.0, np.asarray(mesh.faces), normals)
         lo, hi = verts.min(axis=0), verts.max(axis=0)
         entry: dict[str, Any] = {"diameter": _diameter(verts) * 1000.0}
         for i, ax in enumerate("xyz"):

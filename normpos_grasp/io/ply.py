@@ -1,18 +1,21 @@
-"""Point-cloud PLY files (vertices only): x y z as float64, optional normals (float32) and RGB colours (uint8).
+"""PLY files: point clouds (vertices only) and triangle meshes (BOP object models).
 
-Written in binary little-endian; read back in binary or ASCII. Units are whatever the caller uses (the
-library writes metres).
+Point clouds: x y z as float64, optional normals (float32) and RGB colours (uint8). Meshes: float32 x y z and
+nx ny nz, faces as `property list uchar int vertex_indices` with exactly three corners each and no other face
+property, the layout the BOP toolkit's PLY reader accepts. Written in binary little-endian; point clouds read
+back in binary or ASCII. Units are whatever the caller uses (point clouds in metres, BOP models in mm).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from normpos_grasp.errors import DatasetError, InputError
-from normpos_grasp.typing import ArrayLike, FloatArray, UInt8Array
+from normpos_grasp.typing import ArrayLike, FloatArray, IntArray, UInt8Array
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
@@ -65,6 +68,76 @@ def write_ply(
     target = Path(path)
     tmp = target.with_name(target.name + ".tmp")
     tmp.write_bytes(header.encode("ascii") + b"\n" + data.tobytes())
+    tmp.replace(target)
+
+
+def triangulate_faces(faces: ArrayLike | Sequence[Sequence[int]]) -> IntArray:
+    """(T, 3) triangles from faces given as an (M, k) array (k >= 3) or a list of index lists of any length >= 3:
+    each polygon is split into a fan from its first corner, right for the convex polygons (quads, n-gons) that
+    mesh formats store; the corner order, and so the facing, is kept."""
+    try:
+        rows = [np.asarray(faces, dtype=np.int64)]
+        if rows[0].size == 0:
+            return np.zeros((0, 3), dtype=np.int64)
+    except ValueError:  # ragged: polygons of different lengths
+        rows = [np.asarray(f, dtype=np.int64).reshape(1, -1) for f in faces]  # type: ignore[union-attr]
+    triangles: list[IntArray] = []
+    for block in rows:
+        if block.ndim != 2 or block.shape[1] < 3:
+            raise InputError(f"faces need at least 3 vertex indices each, got shape {block.shape}")
+        k = np.arange(1, block.shape[1] - 1)
+        fan = np.stack([np.repeat(block[:, :1], len(k), axis=1), block[:, k], block[:, k + 1]], axis=-1)
+        triangles.append(fan.reshape(-1, 3))
+    return np.vstack(triangles)
+
+
+def write_mesh_ply(
+    path: str | Path,
+    vertices: ArrayLike,
+    faces: ArrayLike | Sequence[Sequence[int]],
+    normals: ArrayLike | None = None,
+    comment: str = "normpos-grasp",
+) -> None:
+    """Write a triangle mesh as binary little-endian PLY, atomically.
+
+    vertices (N, 3) and optional per-vertex normals (N, 3) are written as float32; faces (see `triangulate_faces`:
+    triangles, quads or polygons) as triangles only, `property list uchar int vertex_indices`.
+    """
+    verts = np.asarray(vertices, dtype=np.float64)
+    if verts.ndim != 2 or verts.shape[1] != 3 or not np.all(np.isfinite(verts)):
+        raise InputError(f"vertices must be finite (N, 3), got shape {verts.shape}")
+    tris = triangulate_faces(faces)
+    if len(tris) and (tris.min() < 0 or tris.max() >= len(verts)):
+        raise InputError(f"face indices must lie in 0..{len(verts) - 1}, got {tris.min()}..{tris.max()}")
+    if len(verts) > np.iinfo(np.int32).max:
+        raise InputError(f"{len(verts)} vertices do not fit PLY int indices")
+    fields: list[tuple[str, str]] = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        f"comment {comment}",
+        f"element vertex {len(verts)}",
+        "property float x",
+        "property float y",
+        "property float z",
+    ]
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape != verts.shape or not np.all(np.isfinite(nrm)):
+            raise InputError(f"normals must be finite {verts.shape} like the vertices, got {nrm.shape}")
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+        header += ["property float nx", "property float ny", "property float nz"]
+    header += [f"element face {len(tris)}", "property list uchar int vertex_indices", "end_header"]
+    vertex_data = np.empty(len(verts), dtype=np.dtype(fields))
+    vertex_data["x"], vertex_data["y"], vertex_data["z"] = verts.T
+    if normals is not None:
+        vertex_data["nx"], vertex_data["ny"], vertex_data["nz"] = nrm.T
+    face_data = np.empty(len(tris), dtype=np.dtype([("n", "u1"), ("v", "<i4", (3,))]))  # packed: 13 bytes
+    face_data["n"] = 3
+    face_data["v"] = tris
+    target = Path(path)
+    tmp = target.with_name(target.name + ".tmp")
+    tmp.write_bytes("\n".join(header).encode("ascii") + b"\n" + vertex_data.tobytes() + face_data.tobytes())
     tmp.replace(target)
 
 
