@@ -1,7 +1,8 @@
 """A 3D digital twin of one frame (the paper's Fig. 6): measured points, fitted templates, cell, robot, gripper.
 
 `TwinScene` is a flat list of coloured meshes and point clouds in the world frame (metres, z up). It exports to
-GLB through trimesh and to a compact JSON payload for the HTML viewer.
+GLB (glTF's y-up by a root node rotation, shading normals on every mesh; see `report.gltf`) and to a compact JSON
+payload for the HTML viewer, which draws the z-up world directly.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import numpy as np
 import trimesh
 
 from normpos_grasp.errors import InputError
-from normpos_grasp.typing import FloatArray
+from normpos_grasp.report.gltf import WORLD_FROM_GLTF, GltfMesh, GltfPoints, glb_bytes, linear_to_srgb
+from normpos_grasp.typing import FloatArray, IntArray
 
 Color = tuple[int, int, int]
 
@@ -38,6 +40,44 @@ PALETTE: tuple[Color, ...] = (
 def palette_color(index: int) -> Color:
     """A distinct RGB colour for instance `index` (cycles after 12)."""
     return PALETTE[index % len(PALETTE)]
+
+
+def capsule_mesh(radius: float, length: float, segments: int = 16, rings: int = 4) -> trimesh.Trimesh:
+    """A closed capsule centred on its origin along z: hemisphere centres at z = -length/2 and +length/2 (the
+    python-fcl convention of `kinematics.shapes`), poles at z = +-(length/2 + radius). Built here rather than by
+    `trimesh.creation.capsule`, whose placement changed between trimesh versions. Metres.
+
+    segments: vertices around the axis; rings: latitude steps per hemisphere (pole excluded).
+    """
+    if not (radius > 0 and length >= 0 and np.isfinite(radius) and np.isfinite(length)):
+        raise InputError(f"capsule needs radius > 0 and length >= 0, got {radius}, {length}")
+    if segments < 3 or rings < 1:
+        raise InputError(f"capsule needs segments >= 3 and rings >= 1, got {segments}, {rings}")
+    # latitudes from the top pole's first ring down to the bottom pole's last ring; each hemisphere ends at its equator
+    lat_top = np.linspace(0.5 * np.pi, 0.0, rings + 1)[1:]
+    lats = np.concatenate([lat_top, -lat_top[::-1]])
+    centres = np.where(np.arange(len(lats)) < rings, 0.5 * length, -0.5 * length)
+    theta = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    ring_xyz = np.stack(
+        [
+            radius * np.cos(lats)[:, None] * np.cos(theta)[None],
+            radius * np.cos(lats)[:, None] * np.sin(theta)[None],
+            np.broadcast_to((centres + radius * np.sin(lats))[:, None], (len(lats), segments)),
+        ],
+        axis=-1,
+    ).reshape(-1, 3)
+    top, bottom = len(ring_xyz), len(ring_xyz) + 1
+    verts = np.vstack([ring_xyz, [[0.0, 0.0, 0.5 * length + radius]], [[0.0, 0.0, -0.5 * length - radius]]])
+    j = np.arange(segments)
+    jn = (j + 1) % segments
+    faces: list[IntArray] = [np.column_stack([np.full(segments, top), j, jn])]
+    for r in range(len(lats) - 1):
+        a, b = r * segments + j, r * segments + jn
+        c, d = a + segments, b + segments
+        faces += [np.column_stack([a, c, b]), np.column_stack([b, c, d])]
+    last = (len(lats) - 1) * segments
+    faces.append(np.column_stack([np.full(segments, bottom), last + jn, last + j]))
+    return trimesh.Trimesh(verts, np.vstack(faces), process=False)
 
 
 @dataclass
@@ -70,10 +110,9 @@ class TwinScene:
     def add_capsule(
         self, name: str, world_from_capsule: FloatArray, radius: float, length: float, color: Color
     ) -> None:
-        """Add a capsule along its local z axis (cylinder `length` between the hemisphere centres)."""
-        capsule = trimesh.creation.capsule(height=length, radius=radius, count=[12, 12])
-        capsule.apply_translation([0.0, 0.0, -length / 2.0])  # trimesh's capsule starts at z = 0
-        self.add_posed_mesh(name, capsule, world_from_capsule, color)
+        """Add a capsule centred on `world_from_capsule` along its z axis, `length` metres between the hemisphere
+        centres (the `kinematics.shapes` convention)."""
+        self.add_posed_mesh(name, capsule_mesh(radius, length), world_from_capsule, color)
 
     def add_points(self, name: str, points: FloatArray, colors: FloatArray | Color, max_points: int = 20000) -> None:
         """Add a point cloud (N, 3) with per-point (N, 3) uint8 colours or one colour; subsampled to `max_points`."""
@@ -105,6 +144,7 @@ class TwinScene:
         return np.array([stacked.min(0), stacked.max(0)])
 
     def to_trimesh_scene(self) -> trimesh.Scene:
+        """The scene as a trimesh Scene in the z-up world frame (face colours; no glTF axis change)."""
         scene = trimesh.Scene()
         for name, mesh, color, opacity in self.meshes:
             coloured = mesh.copy()
@@ -119,8 +159,12 @@ class TwinScene:
 
     @classmethod
     def from_glb(cls, path: str | Path) -> TwinScene:
-        """Read a GLB written by `export_glb` (or any glTF scene): meshes with their main colour and opacity, point
-        clouds with their colours, all placed in the world frame by the scene graph."""
+        """Read a GLB written by `export_glb` (or any glTF scene): meshes with their base colour and opacity, point
+        clouds with their colours, placed by the scene graph and turned from glTF's y-up into the z-up world.
+
+        Colours are read as the spec stores them (linear) and returned as sRGB; 8-bit rounding in trimesh's reader
+        moves dark values by a few steps.
+        """
         source = Path(path)
         try:
             loaded: Any = trimesh.load(source, force="scene")
@@ -128,27 +172,38 @@ class TwinScene:
             raise InputError(f"cannot read the 3D scene {source}: {exc}") from exc
         scene = cls()
         for node in loaded.graph.nodes_geometry:
-            world_from_node, geom_name = loaded.graph[node]
+            gltf_from_node, geom_name = loaded.graph[node]
+            world_from_node = WORLD_FROM_GLTF @ np.asarray(gltf_from_node, dtype=np.float64)
             geom = loaded.geometry[geom_name]
             if isinstance(geom, trimesh.PointCloud):
                 pts = trimesh.transform_points(np.asarray(geom.vertices), world_from_node)
-                cols = np.asarray(geom.colors, dtype=np.float64)[:, :3] if len(geom.colors) else (200, 200, 200)
+                if len(geom.colors):
+                    cols: FloatArray | Color = 255.0 * _srgb(np.asarray(geom.colors, dtype=np.float64)[:, :3])
+                else:
+                    cols = (200, 200, 200)
                 scene.add_points(node, pts, cols, max_points=max(len(pts), 1))
             elif isinstance(geom, trimesh.Trimesh) and len(geom.faces):
-                visual: Any = geom.visual
-                colour_visual = visual.to_color() if hasattr(visual, "to_color") else visual
-                rgba = np.asarray(colour_visual.main_color, dtype=np.float64)
-                color = (int(rgba[0]), int(rgba[1]), int(rgba[2]))
+                rgba = _main_rgba(geom)
+                rgb = np.round(255.0 * _srgb(rgba[:3]))
+                color = (int(rgb[0]), int(rgb[1]), int(rgb[2]))
                 scene.add_posed_mesh(node, geom, world_from_node, color, float(rgba[3]) / 255.0)
         if not scene.meshes and not scene.clouds:
             raise InputError(f"{source} holds no meshes or point clouds")
         return scene
 
     def export_glb(self, path: str | Path) -> None:
-        """Write the scene as binary glTF (GLB); written to a temporary file and renamed."""
+        """Write the scene as binary glTF (GLB), y-up by its root node, with shading normals on every mesh;
+        written to a temporary file and renamed."""
+        from normpos_grasp import __version__
+
+        meshes = [
+            GltfMesh(name, np.asarray(m.vertices), np.asarray(m.faces), color, opacity)
+            for name, m, color, opacity in self.meshes
+        ]
+        clouds = [GltfPoints(name, pts, cols) for name, pts, cols in self.clouds]
         target = Path(path)
         tmp = target.with_name(target.name + ".tmp")
-        tmp.write_bytes(self.to_trimesh_scene().export(file_type="glb"))
+        tmp.write_bytes(glb_bytes(meshes, clouds, generator=f"normpos-grasp {__version__}"))
         tmp.replace(target)
 
     def to_payload(self) -> dict[str, Any]:
@@ -174,6 +229,20 @@ class TwinScene:
                 }
             )
         return {"meshes": meshes, "clouds": clouds, "bounds": self.bounds().tolist()}
+
+
+def _srgb(linear_0_255: FloatArray) -> FloatArray:
+    return linear_to_srgb(np.asarray(linear_0_255, dtype=np.float64) / 255.0)
+
+
+def _main_rgba(mesh: trimesh.Trimesh) -> FloatArray:
+    """(4,) RGBA 0..255 as stored in the file (linear): the PBR base colour, else the visual's main colour."""
+    visual: Any = mesh.visual
+    factor = getattr(getattr(visual, "material", None), "baseColorFactor", None)
+    if factor is not None:
+        return np.asarray(factor, dtype=np.float64).reshape(4)
+    colour_visual = visual.to_color() if hasattr(visual, "to_color") else visual
+    return np.asarray(colour_visual.main_color, dtype=np.float64).reshape(4)
 
 
 def _b64(array: np.ndarray) -> str:
