@@ -231,11 +231,11 @@ def _req(d: dict[str, Any], key: str, path: str) -> Any:
     return d[key]
 
 
-def _text(v: Any, path: str) -> str:
+def _text(v: Any, path: str, max_len: int = MAX_TEXT) -> str:
     if not isinstance(v, str) or not v.strip():
         raise _err(path, f"expected non-empty text, got {type(v).__name__} {_short(v)}")
-    if len(v) > MAX_TEXT or any(ord(c) < 32 for c in v):
-        raise _err(path, f"expected one line of at most {MAX_TEXT} characters, got {len(v)} characters")
+    if len(v) > max_len or any(ord(c) < 32 for c in v):
+        raise _err(path, f"expected one line of at most {max_len} characters, got {len(v)} characters")
     return v
 
 
@@ -426,11 +426,14 @@ def _joint_caps(v: Any, path: str, ceiling: FloatArray, unit: str, source: str) 
         if caps[j] < 1e-3:
             raise _err(where, f"{caps[j]:g} {unit} is below the smallest cap 0.001 {unit}")
         if caps[j] > ceiling[j] * (1 + 1e-9):
-            one = " (one number caps every joint)" if not isinstance(v, list) else ""
-            raise _err(
-                where,
-                f"{caps[j]:g} {unit} is above {JOINT_NAMES[j]}'s ceiling {ceiling[j]:.4g} {unit} ({source}){one}",
-            )
+            scalar = not isinstance(v, list)
+            if scalar and np.all(ceiling == ceiling[0]):
+                whose = "the ceiling"
+                one = ""
+            else:
+                whose = f"{JOINT_NAMES[j]}'s ceiling"
+                one = " (one number caps every joint; give 6)" if scalar else ""
+            raise _err(where, f"{caps[j]:g} {unit} is above {whose} {ceiling[j]:.4g} {unit} ({source}){one}")
     return caps
 
 
@@ -562,7 +565,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
 
     templates_path = None
     if "templates" in data:
-        templates_path = (Path(base_dir) / _text(data["templates"], "templates")).resolve()
+        templates_path = (Path(base_dir) / _text(data["templates"], "templates", 4096)).resolve()
 
     limits = _motion(data.get("motion", {}), model)
     planning = _mapping(data.get("planning", {}), "planning", _PLANNING_KEYS)

@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 
 from normpos_grasp.errors import InputError, RobotModelError
+from normpos_grasp.io.yaml_safe import load_yaml, load_yaml_file
 from normpos_grasp.kinematics.shapes import CollisionShape
 from normpos_grasp.typing import ArrayLike, FloatArray
 
@@ -92,15 +93,15 @@ class Gripper:
                 f"unknown gripper {name!r}; packaged: {', '.join(GRIPPER_NAMES)} "
                 "(or use Gripper.from_yaml for a custom one)"
             )
-        return Gripper.from_dict(yaml.safe_load(path.read_text(encoding="utf-8")), source=str(path))
+        return Gripper.from_dict(load_yaml(path.read_text(encoding="utf-8"), str(path)), source=str(path))
 
     @staticmethod
     def from_yaml(path: str | Path) -> Gripper:
         """A custom gripper from a YAML file in the packaged files' format (see docs/kinematics.md)."""
         try:
-            data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+            data = load_yaml_file(path)
         except (OSError, yaml.YAMLError) as exc:
-            raise RobotModelError(f"cannot read gripper file {path}: {exc}") from exc
+            raise RobotModelError(f"gripper file: {exc}") from exc
         return Gripper.from_dict(data, source=str(path))
 
     @staticmethod
