@@ -365,6 +365,18 @@ def test_bop_models_load_under_the_toolkit_rules(tmp_path: Path) -> None:
         assert np.allclose(loaded.bounds, mesh.bounds, atol=1e-7)
 
 
+def test_real_bop_model_reads_and_survives_our_writer(tmp_path: Path) -> None:
+    source = ROOT.parent / "shared" / "data" / "lmo_sample" / "models"
+    if not (source / "obj_000005.ply").is_file():
+        pytest.skip(f"LM-O sample not found at {source} (CI clones shared/ beside)")
+    original = _read_ply_toolkit_rules(source / "obj_000005.ply")  # the reader accepts a real BOP model (ascii)
+    assert original["faces"].shape == (45666, 3)
+    mesh = load_mesh(read_models(source)[5])  # metres
+    write_models(tmp_path, [(5, mesh, None, None)])
+    again = _read_ply_toolkit_rules(tmp_path / "obj_000005.ply")
+    assert np.allclose(again["pts"], original["pts"], atol=1e-3) and np.array_equal(again["faces"], original["faces"])
+
+
 def test_polygon_faces_are_written_as_triangles(tmp_path: Path) -> None:
     cube = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=np.float64) * 20.0
     quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
