@@ -1,0 +1,77 @@
+"""Shared argument checks of the CLI commands: bounded numbers and output paths that never clobber an earlier run.
+
+The bounded types raise `argparse.ArgumentTypeError`, which the parser turns into one line
+`normpos-grasp CMD: error: argument --x: must be an integer in LO..HI, got V` and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+from normpos_grasp.errors import InputError
+
+#: help text of every `--overwrite` flag
+OVERWRITE_HELP = "replace the results of an earlier run in --out (without it an existing output is refused)"
+
+
+def int_in(lo: int, hi: int) -> Callable[[str], int]:
+    """argparse type: an integer in [lo, hi]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer in {lo}..{hi}, got {text!r}") from None
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be an integer in {lo}..{hi}, got {value}")
+        return value
+
+    parse.__name__ = f"integer in {lo}..{hi}"
+    return parse
+
+
+def float_in(lo: float, hi: float, unit: str = "") -> Callable[[str], float]:
+    """argparse type: a finite float in [lo, hi] (`unit` is only named in the message)."""
+    suffix = f" {unit}" if unit else ""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be a number in [{lo}, {hi}]{suffix}, got {text!r}") from None
+        if not math.isfinite(value) or not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be a number in [{lo}, {hi}]{suffix}, got {text!r}")
+        return value
+
+    parse.__name__ = f"number in [{lo}, {hi}]"
+    return parse
+
+
+def check_out_dir(path: Path, overwrite: bool) -> Path:
+    """Validate an output folder without creating it: not a file; empty or absent unless `overwrite`.
+
+    Raises InputError naming the path and the flag to pass; returns `path`.
+    """
+    if path.exists() and not path.is_dir():
+        raise InputError(f"--out {path} is an existing file; give a folder (it is created when needed)")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise InputError(
+            f"--out {path} already holds files (an earlier run?); pass --overwrite to replace them "
+            "or choose an empty folder"
+        )
+    return path
+
+
+def check_out_file(path: Path, overwrite: bool) -> Path:
+    """Validate an output file path without creating anything: not a folder; absent unless `overwrite`."""
+    if path.is_dir():
+        raise InputError(f"--out {path} is a folder; give the name of the file to write")
+    if path.exists() and not overwrite:
+        raise InputError(f"--out {path} already exists; pass --overwrite to replace it")
+    parent = path.parent
+    if parent.exists() and not parent.is_dir():
+        raise InputError(f"--out {path}: {parent} is a file, not a folder")
+    return path
