@@ -12,6 +12,16 @@ Layout of one scene folder:
     rgb/{im_id:06d}.png|.jpg   (gray/ for grayscale sets)
     depth/{im_id:06d}.png      uint16
     mask/{im_id:06d}_{gt_idx:06d}.png, mask_visib/{im_id:06d}_{gt_idx:06d}.png   (0 / 255)
+
+Validation at the boundary (every failure is a `DatasetError` naming the file): scene_camera.json must map image
+ids to entries with 9 finite `cam_K` values (fx, fy > 0, last row 0 0 1), a finite positive `depth_scale` (never
+defaulted), and, when given, an orthonormal `cam_R_w2c` (det +1) with a finite `cam_t_w2c`. Image sizes are read
+from the file header before decoding (at most `MAX_IMAGE_SIDE` pixels a side); depth must be a 16-bit
+single-channel PNG; saturated (65535) and out-of-range (> `MAX_DEPTH_M`) depths are masked with a warning, or
+refused when more than `MAX_BAD_DEPTH_FRACTION` of the pixels are; a depth image with fewer than
+`MIN_VALID_DEPTH_FRACTION` valid pixels is refused; a colour image that exists but does not decode is refused.
+A scene written by `normpos_grasp.sim` (it has scene_static.json) whose dataset lacks camera.json or parts.json
+was not finished (an interrupted `synth`) and is refused.
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import DatasetError, InputError, MeshError
+from normpos_grasp.io.atomic import atomic_write_bytes
 from normpos_grasp.io.ply import write_mesh_ply
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, UInt8Array, UInt16Array
 from normpos_grasp.validation import as_float_array, check_pose
@@ -37,6 +48,20 @@ logger = logging.getLogger(__name__)
 
 _RGB_DIRS = ("rgb", "gray")
 _RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif")
+
+#: largest image width or height read (pixels); checked from the header before decoding
+MAX_IMAGE_SIDE = 8192
+#: farthest plausible depth (metres): no RGB-D sensor used for bin picking measures beyond this
+MAX_DEPTH_M = 10.0
+#: raw depth value of a saturated pixel
+SATURATED_DEPTH = 65535
+#: more saturated or out-of-range pixels than this fraction of the image refuse the frame (fewer are masked)
+MAX_BAD_DEPTH_FRACTION = 0.01
+#: fewer valid depth pixels than this fraction of the image refuse the frame
+MIN_VALID_DEPTH_FRACTION = 0.01
+#: largest plausible depth_scale (mm per raw unit) and camera distance from the world origin (mm)
+MAX_DEPTH_SCALE_MM = 100.0
+MAX_CAMERA_DISTANCE_MM = 100_000.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -132,10 +157,16 @@ def read_models(models_dir: str | Path) -> dict[int, BopModel]:
                 )
                 for s in entry.get("symmetries_continuous", [])
             )
-        except (KeyError, ValueError, TypeError) as exc:
+        except (KeyError, ValueError, TypeError, AttributeError, InputError) as exc:
             raise DatasetError(
                 f"models_info.json entry {key} must hold diameter, size_x/y/z and well-formed symmetries: {exc}"
             ) from exc
+        if not (math.isfinite(diameter) and diameter > 0 and np.all(np.isfinite(size)) and np.all(size >= 0)):
+            raise DatasetError(
+                f"{root / 'models_info.json'} entry {key}: diameter must be a finite positive length and "
+                f"size_x/y/z finite and >= 0 (mm), got diameter {entry.get('diameter')!r}, "
+                f"size {[entry.get(k) for k in ('size_x', 'size_y', 'size_z')]}"
+            )
         out[obj_id] = BopModel(
             obj_id=obj_id,
             mesh_path=root / f"obj_{obj_id:06d}.ply",
@@ -226,7 +257,19 @@ class BopScene:
         cam = self.path / "scene_camera.json"
         if not cam.is_file():
             raise DatasetError(f"{self.path} is not a BOP scene: scene_camera.json is missing")
-        self._camera = {_int_key(k, cam): v for k, v in _read_json(cam).items()}
+        _check_finished(self.path)
+        table = _read_json(cam)
+        if not isinstance(table, dict):
+            raise DatasetError(f"{cam}: expected an object keyed by image id, got a JSON {type(table).__name__}")
+        self._camera = {_int_key(k, cam): v for k, v in table.items()}
+        if not self._camera:
+            raise DatasetError(
+                f"{cam} lists no frames: the scene is empty or its writer was interrupted; generate it again"
+            )
+        for im_id, entry in self._camera.items():
+            if not isinstance(entry, dict):
+                raise DatasetError(f"{cam} frame {im_id}: expected an object (cam_K, depth_scale, ...), got {entry!r}")
+        self._checked: dict[int, dict[str, Any]] = {}
         self._gt_raw: dict[int, list[dict[str, Any]]] | None = None
         self._gt_info_raw: dict[int, list[dict[str, Any]]] | None = None
 
@@ -271,57 +314,118 @@ class BopScene:
         raise DatasetError(f"frame {im_id} of {self.path} has neither a colour nor a depth image")
 
     def camera(self, im_id: int) -> Camera:
-        """Camera of frame `im_id` (size from the image; extrinsics when cam_R_w2c/cam_t_w2c are given)."""
-        entry = self._camera[self._check_id(im_id)]
+        """Camera of frame `im_id` (size from the image; extrinsics when cam_R_w2c/cam_t_w2c are given).
+
+        Raises DatasetError when the scene_camera.json entry is malformed or implausible (see the module doc).
+        """
+        im_id = self._check_id(im_id)
         w, h = self.image_size(im_id)
+        entry = self.camera_entry(im_id, (w, h))
         try:
             return Camera.from_bop(entry, w, h)
         except InputError as exc:
             raise DatasetError(f"{self.path / 'scene_camera.json'} frame {im_id}: {exc}") from exc
 
-    def load_rgb(self, im_id: int) -> UInt8Array:
-        """(H, W, 3) uint8 RGB (grayscale images are replicated to 3 channels)."""
-        import cv2
+    def camera_entry(self, im_id: int, size: tuple[int, int] | None = None) -> dict[str, Any]:
+        """The validated scene_camera.json entry of frame `im_id` (floats; cam_R_w2c re-orthonormalised).
 
+        size: (width, height) to check the principal point against; read from the image header when None.
+        """
+        im_id = self._check_id(im_id)
+        if im_id not in self._checked:
+            w, h = self.image_size(im_id) if size is None else size
+            self._checked[im_id] = _checked_camera_entry(
+                self._camera[im_id], w, h, f"{self.path / 'scene_camera.json'} frame {im_id}"
+            )
+        return self._checked[im_id]
+
+    def load_rgb(self, im_id: int) -> UInt8Array:
+        """(H, W, 3) uint8 RGB (grayscale images are replicated to 3 channels); DatasetError when it does not decode."""
         path = self.rgb_path(im_id)
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise DatasetError(f"cannot decode {path}")
+        img = _imread(path)
         if img.dtype != np.uint8:
             img = (img / max(float(img.max()), 1.0) * 255.0).astype(np.uint8)
         if img.ndim == 2:
             return np.repeat(img[:, :, None], 3, axis=2)
+        if img.ndim != 3 or img.shape[2] not in (3, 4):
+            raise DatasetError(f"{path}: expected a colour or grayscale image, got shape {img.shape}")
         if img.shape[2] == 4:
             img = img[:, :, :3]
         return np.ascontiguousarray(img[:, :, ::-1])
 
     def load_depth_raw(self, im_id: int) -> UInt16Array:
-        """(H, W) uint16 raw depth as stored."""
-        import cv2
-
+        """(H, W) uint16 raw depth as stored; DatasetError unless a 16-bit single-channel PNG."""
         path = self.depth_path(im_id)
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None or img.ndim != 2:
-            raise DatasetError(f"{path} must be a single-channel 16-bit PNG")
-        return img.astype(np.uint16, copy=False)
+        header = _read_header(path)
+        if header.kind != "png":
+            raise DatasetError(f"{path} is not a PNG file; BOP depth is a 16-bit single-channel PNG")
+        if header.bit_depth != 16 or header.channels != 1:
+            raise DatasetError(
+                f"{path} is a {header.bit_depth}-bit PNG with {header.channels} channel(s); BOP depth must be "
+                "16-bit single-channel (raw units times depth_scale = mm)"
+            )
+        img = _imread(path)
+        if img.ndim != 2 or img.dtype != np.uint16:
+            raise DatasetError(f"{path} must be a single-channel 16-bit PNG, decoded as {img.dtype} {img.shape}")
+        return np.asarray(img, dtype=np.uint16)
+
+    def depth_scale_mm(self, im_id: int) -> float:
+        """The frame's depth_scale (mm per raw depth unit), validated (present, finite, > 0)."""
+        im_id = self._check_id(im_id)
+        entry = self._camera[im_id]
+        where = f"{self.path / 'scene_camera.json'} frame {im_id}"
+        return _depth_scale(entry, where)
 
     def load_depth(self, im_id: int) -> FloatArray:
-        """(H, W) float64 depth in metres, 0 where invalid (depth_scale honoured)."""
+        """(H, W) float64 depth in metres, 0 where invalid (depth_scale honoured).
+
+        Saturated (65535) and implausibly far (> MAX_DEPTH_M) pixels are set to 0 with a warning; a frame where
+        more than MAX_BAD_DEPTH_FRACTION of the pixels are, or fewer than MIN_VALID_DEPTH_FRACTION have depth, is
+        refused with DatasetError.
+        """
+        im_id = self._check_id(im_id)
+        scale_m = self.depth_scale_mm(im_id) / 1000.0
         raw = self.load_depth_raw(im_id)
-        scale_mm = float(self._camera[int(im_id)].get("depth_scale", 1.0))
-        return raw.astype(np.float64) * (scale_mm / 1000.0)
+        return _plausible_depth(raw, scale_m, self.depth_path(im_id))
 
     def load_frame(self, im_id: int) -> RGBDFrame:
-        """The whole frame; a missing colour image gives a black one (depth-only sets)."""
+        """The whole frame; a scene without colour images gives a black one (depth-only sets).
+
+        A colour image that exists but cannot be decoded is an error, not a black image.
+        """
         cam = self.camera(im_id)
         depth = self.load_depth(im_id)
-        try:
+        if self._has_rgb(im_id):
             rgb = self.load_rgb(im_id)
-        except DatasetError:
+        else:
+            logger.info("frame %d of %s has no colour image: using a black one", im_id, self.path)
             rgb = np.zeros((cam.height, cam.width, 3), dtype=np.uint8)
         if depth.shape != (cam.height, cam.width) or rgb.shape[:2] != depth.shape:
             raise DatasetError(f"frame {im_id} of {self.path}: colour {rgb.shape[:2]} and depth {depth.shape} differ")
         return RGBDFrame(rgb, depth, cam, stamp=0.0, scene_id=self.scene_id, im_id=int(im_id))
+
+    def check_frame(self, im_id: int) -> None:
+        """Validate frame `im_id` without decoding pixels: camera entry, depth_scale, image headers and sizes."""
+        im_id = self._check_id(im_id)
+        cam = self.camera(im_id)
+        self.depth_scale_mm(im_id)
+        depth = _read_header(self.depth_path(im_id))
+        if depth.kind == "png" and (depth.bit_depth != 16 or depth.channels != 1):
+            raise DatasetError(
+                f"{self.depth_path(im_id)} is a {depth.bit_depth}-bit PNG with {depth.channels} channel(s); "
+                "BOP depth must be 16-bit single-channel"
+            )
+        if (depth.width, depth.height) != (cam.width, cam.height):
+            raise DatasetError(
+                f"frame {im_id} of {self.path}: depth is {depth.width}x{depth.height}, colour {cam.width}x{cam.height}"
+            )
+
+    def _has_rgb(self, im_id: int) -> bool:
+        try:
+            self.rgb_path(im_id)
+        except DatasetError:
+            return False
+        return True
 
     # -- ground truth ---------------------------------------------------------------------------
     def _gt_all(self) -> dict[int, list[dict[str, Any]]]:
@@ -329,7 +433,7 @@ class BopScene:
             path = self.path / "scene_gt.json"
             if not path.is_file():
                 raise DatasetError(f"{path} not found: this scene has no ground truth")
-            self._gt_raw = {_int_key(k, path): list(v) for k, v in _read_json(path).items()}
+            self._gt_raw = _keyed_lists(_read_json(path), path)
         return self._gt_raw
 
     def gt(self, im_id: int) -> list[BopGT]:
@@ -342,7 +446,7 @@ class BopScene:
             path = self.path / "scene_gt_info.json"
             if not path.is_file():
                 raise DatasetError(f"{path} not found: run a BOP toolkit or BopSceneWriter to create it")
-            self._gt_info_raw = {_int_key(k, path): list(v) for k, v in _read_json(path).items()}
+            self._gt_info_raw = _keyed_lists(_read_json(path), path)
         return [dict(e) for e in self._gt_info_raw.get(self._check_id(im_id), [])]
 
     def mask_visib(self, im_id: int, gt_index: int) -> BoolArray:
@@ -358,14 +462,10 @@ class BopScene:
         return (self.path / sub / f"{self._check_id(im_id):06d}_{0:06d}.png").is_file()
 
     def _mask(self, sub: str, im_id: int, gt_index: int) -> BoolArray:
-        import cv2
-
         path = self.path / sub / f"{self._check_id(im_id):06d}_{int(gt_index):06d}.png"
         if not path.is_file():
             raise DatasetError(f"mask {path} not found")
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise DatasetError(f"cannot decode {path}")
+        img = _imread(path)
         if img.ndim == 3:
             img = img[:, :, 0]
         return np.asarray(img > 0)
@@ -610,9 +710,7 @@ def _dump_keyed(table: dict[int, Any]) -> bytes:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
+    atomic_write_bytes(path, data)
 
 
 def _imwrite(path: Path, img: np.ndarray, params: list[int]) -> None:
@@ -624,16 +722,228 @@ def _imwrite(path: Path, img: np.ndarray, params: list[int]) -> None:
     _atomic_write(path, buf.tobytes())
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from a PNG header, else by decoding the image."""
-    with path.open("rb") as fh:
-        head = fh.read(24)
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        w, h = struct.unpack(">II", head[16:24])
-        return int(w), int(h)
+# -- reading and checking ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image file's header says: kind ('png', 'jpeg' or 'other'), size in pixels, bits per sample and
+    channels (None where the header was not parsed)."""
+
+    kind: str
+    width: int
+    height: int
+    bit_depth: int | None = None
+    channels: int | None = None
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _read_header(path: Path) -> ImageHeader:
+    """Parse the size (and bit depth) of a PNG or JPEG from its header, without decoding; others are decoded.
+
+    Raises DatasetError for an unreadable or truncated header and for a size over MAX_IMAGE_SIDE a side.
+    """
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(33)
+            header: ImageHeader | None = None
+            if head[:8] == b"\x89PNG\r\n\x1a\n":
+                if len(head) < 26 or head[12:16] != b"IHDR":
+                    raise DatasetError(f"{path}: truncated or corrupt PNG header")
+                w, h = struct.unpack(">II", head[16:24])
+                header = ImageHeader("png", int(w), int(h), int(head[24]), _PNG_CHANNELS.get(int(head[25])))
+            elif head[:2] == b"\xff\xd8":
+                fh.seek(2)
+                header = _jpeg_header(fh, path)
+    except OSError as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from exc
+    if header is None:
+        img = _imread(path, checked=False)
+        header = ImageHeader("other", int(img.shape[1]), int(img.shape[0]))
+    if not (0 < header.width <= MAX_IMAGE_SIDE and 0 < header.height <= MAX_IMAGE_SIDE):
+        raise DatasetError(
+            f"{path}: the header claims {header.width}x{header.height} pixels; images must be 1..{MAX_IMAGE_SIDE} "
+            "pixels a side (a corrupt or hostile file?)"
+        )
+    return header
+
+
+def _jpeg_header(fh: Any, path: Path) -> ImageHeader:
+    """Walk the JPEG markers up to the first start-of-frame; returns its size, precision and components."""
+    for _ in range(10_000):
+        marker = fh.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            break
+        code = marker[1]
+        if code in (0xD8, 0x01) or 0xD0 <= code <= 0xD7:
+            continue
+        length_bytes = fh.read(2)
+        if len(length_bytes) < 2:
+            break
+        (length,) = struct.unpack(">H", length_bytes)
+        if code in _JPEG_SOF:
+            body = fh.read(6)
+            if len(body) < 6:
+                break
+            precision, h, w, comps = struct.unpack(">BHHB", body)
+            return ImageHeader("jpeg", int(w), int(h), int(precision), int(comps))
+        if length < 2:
+            break
+        fh.seek(length - 2, 1)
+    raise DatasetError(f"{path}: truncated or corrupt JPEG (no frame header)")
+
+
+def _imread(path: Path, checked: bool = True) -> np.ndarray:
+    """Decode an image unchanged (bit depth and channels kept); DatasetError when it cannot be decoded.
+
+    checked: the header size has been checked against MAX_IMAGE_SIDE (done first when True).
+    """
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    header = _read_header(path) if checked else None
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise DatasetError(f"cannot decode {path}: {' '.join(str(exc).split())}") from exc
     if img is None:
-        raise DatasetError(f"cannot decode {path}")
-    return int(img.shape[1]), int(img.shape[0])
+        raise DatasetError(f"cannot decode {path}: corrupt, truncated or not an image")
+    if header is not None and (img.shape[1], img.shape[0]) != (header.width, header.height):
+        raise DatasetError(
+            f"{path}: decoded {img.shape[1]}x{img.shape[0]} pixels, its header says {header.width}x{header.height}"
+        )
+    return np.asarray(img)
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the image header (PNG, JPEG), else by decoding the image."""
+    header = _read_header(path)
+    return header.width, header.height
+
+
+def _keyed_lists(table: Any, path: Path) -> dict[int, list[dict[str, Any]]]:
+    """{im_id: [entry, ...]} of scene_gt.json / scene_gt_info.json, checked for structure."""
+    if not isinstance(table, dict):
+        raise DatasetError(f"{path}: expected an object keyed by image id, got a JSON {type(table).__name__}")
+    out: dict[int, list[dict[str, Any]]] = {}
+    for key, value in table.items():
+        im_id = _int_key(key, path)
+        if not isinstance(value, list) or not all(isinstance(e, dict) for e in value):
+            raise DatasetError(f"{path} frame {key}: expected a list of objects, got {str(value)[:80]}")
+        out[im_id] = value
+    return out
+
+
+def _numbers(entry: dict[str, Any], key: str, n: int, where: str) -> FloatArray:
+    """entry[key] as n finite floats (a flat list of JSON numbers, or a nested row-major matrix)."""
+    if key not in entry:
+        raise DatasetError(f"{where}: {key} is missing")
+    value = entry[key]
+    if isinstance(value, list) and value and all(isinstance(row, list) for row in value):
+        value = [v for row in value for v in row]  # a nested [[...], [...], [...]] matrix
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
+        raise DatasetError(f"{where}: {key} must be a list of {n} numbers, got {str(value)[:120]}")
+    arr = np.array(value, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise DatasetError(f"{where}: {key} holds NaN or infinite values: {value}")
+    return arr
+
+
+def _depth_scale(entry: dict[str, Any], where: str) -> float:
+    if "depth_scale" not in entry:
+        raise DatasetError(
+            f"{where}: depth_scale is missing; BOP needs it (mm per raw depth unit, e.g. 1.0 or 0.1) and a "
+            "guessed scale would put every object at the wrong distance"
+        )
+    value = entry["depth_scale"]
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise DatasetError(f"{where}: depth_scale must be a number (mm per raw depth unit), got {value!r}")
+    scale = float(value)
+    if not (math.isfinite(scale) and 0 < scale <= MAX_DEPTH_SCALE_MM):
+        raise DatasetError(
+            f"{where}: depth_scale must be finite and in (0, {MAX_DEPTH_SCALE_MM}] mm per raw unit, got {value!r}"
+        )
+    return scale
+
+
+def _checked_camera_entry(entry: dict[str, Any], width: int, height: int, where: str) -> dict[str, Any]:
+    """Validate one scene_camera.json entry (see the module doc); returns a clean copy for Camera.from_bop."""
+    k = _numbers(entry, "cam_K", 9, where).reshape(3, 3)
+    if not (k[0, 0] > 0 and k[1, 1] > 0) or not np.allclose(k[2], [0.0, 0.0, 1.0], atol=1e-9):
+        raise DatasetError(f"{where}: cam_K must hold fx, fy > 0 and the last row [0, 0, 1], got {k.tolist()}")
+    if not (0 <= k[0, 2] <= width and 0 <= k[1, 2] <= height):
+        raise DatasetError(
+            f"{where}: principal point ({k[0, 2]:g}, {k[1, 2]:g}) lies outside the {width}x{height} image"
+        )
+    out: dict[str, Any] = {"cam_K": k.reshape(-1).tolist(), "depth_scale": _depth_scale(entry, where)}
+    has_r, has_t = "cam_R_w2c" in entry, "cam_t_w2c" in entry
+    if has_r != has_t:
+        raise DatasetError(f"{where}: cam_R_w2c and cam_t_w2c come together; only one of them is given")
+    if has_r:
+        rot = _numbers(entry, "cam_R_w2c", 9, where).reshape(3, 3)
+        err = float(np.max(np.abs(rot @ rot.T - np.eye(3))))
+        if err > 1e-3 or np.linalg.det(rot) <= 0:
+            raise DatasetError(
+                f"{where}: cam_R_w2c is not a rotation (|R R^T - I| = {err:.3g}, det {np.linalg.det(rot):.6g}); "
+                "give 9 row-major values of an orthonormal matrix with det +1"
+            )
+        t = _numbers(entry, "cam_t_w2c", 3, where)
+        if float(np.linalg.norm(t)) > MAX_CAMERA_DISTANCE_MM:
+            raise DatasetError(
+                f"{where}: cam_t_w2c {t.tolist()} mm puts the camera more than {MAX_CAMERA_DISTANCE_MM / 1000:g} m "
+                "from the world origin; cam_t_w2c is in millimetres"
+            )
+        out["cam_R_w2c"] = rot.reshape(-1).tolist()
+        out["cam_t_w2c"] = t.tolist()
+    return out
+
+
+def _plausible_depth(raw: UInt16Array, scale_m: float, path: Path) -> FloatArray:
+    """Raw depth -> metres with saturated and out-of-range pixels masked (or the frame refused)."""
+    n = raw.size
+    saturated = raw == SATURATED_DEPTH
+    depth = raw.astype(np.float64) * scale_m
+    far = (depth > MAX_DEPTH_M) & ~saturated
+    n_sat, n_far = int(saturated.sum()), int(far.sum())
+    if n_sat > MAX_BAD_DEPTH_FRACTION * n:
+        raise DatasetError(
+            f"{path}: {n_sat} of {n} depth pixels ({100 * n_sat / n:.1f} %) are saturated ({SATURATED_DEPTH}); "
+            "the depth is clipped or was written with the wrong scale"
+        )
+    if n_far > MAX_BAD_DEPTH_FRACTION * n:
+        raise DatasetError(
+            f"{path}: {n_far} of {n} depth pixels ({100 * n_far / n:.1f} %) lie beyond {MAX_DEPTH_M:g} m at "
+            f"depth_scale {scale_m * 1000:g} mm/unit; check depth_scale in scene_camera.json"
+        )
+    if n_sat or n_far:
+        logger.warning(
+            "%s: %d saturated and %d beyond-%g m depth pixels masked as invalid", path, n_sat, n_far, MAX_DEPTH_M
+        )
+        depth[saturated | far] = 0.0
+    n_valid = int(np.count_nonzero(depth))
+    if n_valid < MIN_VALID_DEPTH_FRACTION * n:
+        what = "no valid depth (all zero)" if n_valid == 0 else f"only {n_valid} of {n} pixels with depth"
+        raise DatasetError(f"{path} has {what}; nothing can be measured in this frame")
+    return depth
+
+
+def _check_finished(scene_dir: Path) -> None:
+    """Refuse a scene of a `normpos_grasp.sim` dataset whose writer did not finish (an interrupted `synth`).
+
+    Such a dataset writes scene_static.json into each scene and camera.json plus parts.json at its root, the
+    latter only once every scene is complete.
+    """
+    split = scene_dir.parent
+    if not (scene_dir / "scene_static.json").is_file() and next(split.glob("*/scene_static.json"), None) is None:
+        return
+    root = split.parent
+    missing = [name for name in ("camera.json", "parts.json") if not (root / name).is_file()]
+    if missing:
+        raise DatasetError(
+            f"{root} is an incomplete synthetic dataset ({' and '.join(missing)} missing: its `synth` run was "
+            "interrupted); generate it again"
+        )

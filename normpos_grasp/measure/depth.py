@@ -19,6 +19,9 @@ import numpy as np
 from normpos_grasp.errors import InputError
 from normpos_grasp.typing import ArrayLike, BoolArray, Float32Array, FloatArray
 
+#: largest window half-size S (pixels): a (101 x 101) window already spans a whole part at bin distance
+MAX_HALF_WINDOW = 50
+
 
 @dataclass(frozen=True)
 class DepthFillOptions:
@@ -46,8 +49,11 @@ class DepthFillOptions:
     edge_rel_tol: float = 0.01
 
     def __post_init__(self) -> None:
-        if int(self.half_window) != self.half_window or self.half_window < 0:
-            raise InputError(f"half_window S must be an integer >= 0, got {self.half_window}")
+        if int(self.half_window) != self.half_window or not 0 <= self.half_window <= MAX_HALF_WINDOW:
+            raise InputError(
+                f"half_window S must be an integer in 0..{MAX_HALF_WINDOW} pixels (the window is (2S+1)^2), "
+                f"got {self.half_window}"
+            )
         if not 0 <= self.min_depth_m < self.max_depth_m:
             raise InputError(
                 f"need 0 <= min_depth_m < max_depth_m (metres), got {self.min_depth_m} and {self.max_depth_m}"

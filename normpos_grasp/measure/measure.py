@@ -19,6 +19,7 @@ import numpy as np
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError, MeasurementError
 from normpos_grasp.geometry.transforms import transform_points
+from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.measure.depth import DepthFillOptions, fill_depth
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.normpos import NormPosition, OrientedBox
@@ -49,10 +50,10 @@ class MeasureOptions:
     max_normal_jump_m: float = 0.02
 
     def __post_init__(self) -> None:
-        if self.erode_px < 0 or self.normal_step_px < 1 or self.min_points < 3:
+        if not (0 <= self.erode_px <= 100 and 1 <= self.normal_step_px <= 50 and self.min_points >= 3):
             raise InputError(
-                f"need erode_px >= 0, normal_step_px >= 1, min_points >= 3; got {self.erode_px}, "
-                f"{self.normal_step_px}, {self.min_points}"
+                f"need erode_px in 0..100, normal_step_px in 1..50 (pixels) and min_points >= 3; got "
+                f"{self.erode_px}, {self.normal_step_px}, {self.min_points}"
             )
         if not self.max_normal_jump_m > 0:
             raise InputError(f"max_normal_jump_m must be > 0 metres, got {self.max_normal_jump_m}")
@@ -336,10 +337,7 @@ def normpos_to_dict(np_: NormPosition, points_file: str | None = None) -> dict[s
 
 def save_normpos_json(path: str | Path, items: list[NormPosition]) -> None:
     """Write summaries of `items` as a JSON list (atomic)."""
-    target = Path(path)
-    tmp = target.with_name(target.name + ".tmp")
-    tmp.write_text(json.dumps([normpos_to_dict(n) for n in items], indent=2))
-    tmp.replace(target)
+    atomic_write_text(path, json.dumps([normpos_to_dict(n) for n in items], indent=2))
 
 
 def save_normpos_ply(path: str | Path, item: NormPosition) -> None:
