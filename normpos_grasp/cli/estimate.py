@@ -4,12 +4,16 @@ For every frame of every scene of a BOP split: segment (bundled ONNX model, dept
 masks), measure the norm-positions, fit the templates of MODELS and write one CSV row per accepted fit:
 `scene_id,im_id,obj_id,score,R,t,time` (R row-major, 9 values space-separated; t in mm; time in s per
 image), which the BOP toolkit scores directly.
+
+The CSV is written under a temporary name and moved into place only when every frame is done, so an error
+leaves no (header-only or partial) results file; an existing --out is refused unless --overwrite.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import io
 import logging
 import time
 from pathlib import Path
@@ -17,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.cli.args import check_out_file, float_in, int_in
 from normpos_grasp.errors import InputError
+from normpos_grasp.io.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
 
@@ -33,7 +39,8 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("split", help="BOP split folder (for example test/) holding numeric scene folders")
     p.add_argument("--models", required=True, help="template library: BOP models folder or template folders")
-    p.add_argument("--out", required=True, help="results CSV to write")
+    p.add_argument("--out", required=True, help="results CSV to write (refused when it exists, see --overwrite)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing results CSV")
     p.add_argument(
         "--segmenter",
         choices=SEGMENTERS,
@@ -42,9 +49,11 @@ def register(subparsers: Any) -> None:
         "gt: BOP mask_visib (measures fitting alone); auto: model when its classes cover the library, else depth",
     )
     p.add_argument("--onnx", default=None, help="ONNX model file for --segmenter model (default: bundled)")
-    p.add_argument("--max-frames", type=int, default=0, help="stop after this many frames per scene (0 = all)")
+    p.add_argument("--max-frames", type=int_in(0, 1_000_000), default=0,
+                   help="stop after this many frames per scene (0 = all)")  # fmt: skip
     p.add_argument("--include-rejected", action="store_true", help="also write rejected fits (score halved)")
-    p.add_argument("--depth-bias-mm", type=float, default=0.0, help="calibrated sensor depth offset, mm")
+    p.add_argument("--depth-bias-mm", type=float_in(-100.0, 100.0, "mm"), default=0.0,
+                   help="calibrated sensor depth offset, mm (within +-100)")  # fmt: skip
     p.set_defaults(handler=run)
 
 
@@ -55,39 +64,41 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.templates.library import load_library
     from normpos_grasp.templates.prepared import prepare
 
+    out = check_out_file(Path(args.out), getattr(args, "overwrite", False))
+    scenes = read_split(args.split)
+    work = [(scene, scene.frame_ids[: args.max_frames] if args.max_frames > 0 else scene.frame_ids) for scene in scenes]
+    for scene, ids in work:  # camera entries, depth scales and image headers, before the slow part
+        for im_id in ids:
+            scene.check_frame(im_id)
     library = load_library(args.models)
     for template in library:  # build the fitter's caches before timing frames
         prepare(template)
-    scenes = read_split(args.split)
     options = FitOptions(depth_bias_m=float(args.depth_bias_mm) / 1000.0)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     n_rows = n_inst = n_frames = 0
     t_all = time.perf_counter()
-    with out.open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(["scene_id", "im_id", "obj_id", "score", "R", "t", "time"])
-        for scene in scenes:
-            segmenter = _make_segmenter(args, scene, library)
-            ids = scene.frame_ids[: args.max_frames] if args.max_frames > 0 else scene.frame_ids
-            for im_id in ids:
-                frame = scene.load_frame(im_id)
-                t0 = time.perf_counter()
-                instances = segmenter.segment(frame)
-                normpos = measure_instances(frame, instances)
-                ctx = FitContext(frame.camera, frame.depth_m)
-                fits = [fit_best(n, library, options, ctx) for n in normpos]
-                dt = time.perf_counter() - t0
-                n_frames += 1
-                n_inst += len(normpos)
-                for fit in fits:
-                    if not fit.accepted and not args.include_rejected:
-                        logger.info(
-                            "scene %d im %d: %s rejected: %s", scene.scene_id, im_id, fit.template.name, fit.reason
-                        )
-                        continue
-                    writer.writerow(_row(scene.scene_id, im_id, fit, frame.camera, dt))
-                    n_rows += 1
+    text = io.StringIO()
+    writer = csv.writer(text)
+    writer.writerow(["scene_id", "im_id", "obj_id", "score", "R", "t", "time"])
+    for scene, ids in work:
+        segmenter = _make_segmenter(args, scene, library)
+        for im_id in ids:
+            frame = scene.load_frame(im_id)
+            t0 = time.perf_counter()
+            instances = segmenter.segment(frame)
+            normpos = measure_instances(frame, instances)
+            ctx = FitContext(frame.camera, frame.depth_m)
+            fits = [fit_best(n, library, options, ctx) for n in normpos]
+            dt = time.perf_counter() - t0
+            n_frames += 1
+            n_inst += len(normpos)
+            for fit in fits:
+                if not fit.accepted and not args.include_rejected:
+                    logger.info("scene %d im %d: %s rejected: %s", scene.scene_id, im_id, fit.template.name, fit.reason)
+                    continue
+                writer.writerow(_row(scene.scene_id, im_id, fit, frame.camera, dt))
+                n_rows += 1
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, text.getvalue())
     print(
         f"estimate: {n_rows} poses from {n_inst} instances in {n_frames} frames "
         f"({time.perf_counter() - t_all:.1f} s) -> {out}"

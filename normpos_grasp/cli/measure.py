@@ -5,6 +5,9 @@ Output per frame (documented in docs/measurement.md, a public interface):
     OUT/<scene_id:06d>/<im_id:06d>.json            summary (see below)
     OUT/<scene_id:06d>/<im_id:06d>_instances.png   uint16, 0 background, k = instance_id
     OUT/<scene_id:06d>/<im_id:06d>_<instance_id:03d>.ply   points (+ normals) of each object, metres
+
+Every file is written under a temporary name and moved into place when complete. OUT is created only once the
+first frame has been read and measured; an OUT that already holds files is refused unless --overwrite.
 """
 
 from __future__ import annotations
@@ -17,9 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.errors import InputError, MissingDependency, NormposError, SegmentationError
+from normpos_grasp.cli.args import OVERWRITE_HELP, check_out_dir, int_in
+from normpos_grasp.errors import InputError, MeasurementError, MissingDependency, NormposError, SegmentationError
+from normpos_grasp.io.atomic import atomic_write_bytes, atomic_write_text
 from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
-from normpos_grasp.measure.depth import DepthFillOptions
+from normpos_grasp.measure.depth import MAX_HALF_WINDOW, DepthFillOptions
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances, normpos_to_dict
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.records.instance import Instance
@@ -32,15 +37,18 @@ def register(subparsers: Any) -> None:
         description="Segment every frame of a BOP scene or split folder and measure each object's surface points.",
     )
     p.add_argument("path", type=Path, help="BOP scene folder (with scene_camera.json) or split folder of scenes")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (created; must be empty or absent)")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--segmenter", choices=("model", "depth", "gt"), default="gt", help="instance source (default gt)")
     p.add_argument("--model", type=Path, default=None, help="ONNX model for --segmenter model (default: bundled)")
     p.add_argument("--models-dir", type=Path, default=None, help="BOP models folder to render GT masks when a scene "
                    "has no mask_visib (default: PATH/../models)")  # fmt: skip
     p.add_argument("--frames", type=str, default=None, help="comma-separated image ids (default: all)")
-    p.add_argument("--half-window", type=int, default=2, help="depth window S, the window is (2S+1)^2 (default 2)")
+    p.add_argument("--half-window", type=int_in(0, MAX_HALF_WINDOW), default=2,
+                   help=f"depth window S in 0..{MAX_HALF_WINDOW}, the window is (2S+1)^2 (default 2)")  # fmt: skip
     p.add_argument("--plain-mean", action="store_true", help="use the paper's plain window mean, not edge-aware")
-    p.add_argument("--erode", type=int, default=0, help="erode masks by this many pixels first (default 0)")
+    p.add_argument("--erode", type=int_in(0, 100), default=0,
+                   help="erode masks by this many pixels first, 0..100 (default 0)")  # fmt: skip
     p.add_argument("--no-ply", action="store_true", help="do not write per-object PLY files")
     p.set_defaults(handler=run)
 
@@ -74,6 +82,7 @@ def _make_segmenter(kind: str, scene: BopScene, args: argparse.Namespace) -> Seg
 
 def run(args: argparse.Namespace) -> int:
     path: Path = args.path
+    out_root = check_out_dir(args.out, getattr(args, "overwrite", False))
     if is_scene_dir(path):
         scenes = [BopScene(path)]
     elif path.is_dir():
@@ -89,12 +98,16 @@ def run(args: argparse.Namespace) -> int:
     options = MeasureOptions(
         depth=DepthFillOptions(half_window=args.half_window, edge_aware=not args.plain_mean), erode_px=args.erode
     )
+    work = [(scene, [i for i in scene.frame_ids if frames_filter is None or i in frames_filter]) for scene in scenes]
+    if not any(ids for _, ids in work):
+        raise InputError(f"no frames matched in {path}" + (f" for --frames {args.frames}" if args.frames else ""))
+    for scene, ids in work:  # camera entries, depth scales and image headers, before anything is written
+        for im_id in ids:
+            scene.check_frame(im_id)
     n_frames = n_objects = 0
-    for scene in scenes:
+    for scene, ids in work:
         segmenter: Segmenter | None = None
-        out_dir = args.out / f"{scene.scene_id:06d}"
-        out_dir.mkdir(parents=True, exist_ok=True)
-        ids = [i for i in scene.frame_ids if frames_filter is None or i in frames_filter]
+        out_dir = out_root / f"{scene.scene_id:06d}"
         for im_id in ids:
             if segmenter is None:
                 segmenter = _make_segmenter(args.segmenter, scene, args)
@@ -105,16 +118,18 @@ def run(args: argparse.Namespace) -> int:
                 f"scene {scene.scene_id:06d} frame {im_id:06d}: {len(result['objects'])} objects, "
                 f"{result['timing_ms']['total']:.1f} ms"
             )
-    if n_frames == 0:
-        raise InputError(f"no frames matched in {path}" + (f" for --frames {args.frames}" if args.frames else ""))
-    print(f"measured {n_objects} objects in {n_frames} frames -> {args.out}")
+    print(f"measured {n_objects} objects in {n_frames} frames -> {out_root}")
     return 0
 
 
 def measure_frame(
     scene: BopScene, im_id: int, segmenter: Segmenter, options: MeasureOptions, out_dir: Path, write_ply: bool = True
 ) -> dict[str, Any]:
-    """Measure one frame and write its JSON, instance PNG and PLYs into `out_dir`; returns the JSON dict."""
+    """Measure one frame and write its JSON, instance PNG and PLYs into `out_dir`; returns the JSON dict.
+
+    `out_dir` is created only after the frame has been read and measured; each file is written atomically.
+    Raises MeasurementError when the segmenter found objects but none of them has usable depth.
+    """
     import cv2
 
     from normpos_grasp.io.ply import write_ply as write_points
@@ -129,6 +144,16 @@ def measure_frame(
     t2 = time.perf_counter()
     items = measure_instances(frame, instances, options)
     t3 = time.perf_counter()
+    if instances and not items:
+        raise MeasurementError(
+            f"scene {scene.scene_id} frame {im_id}: none of the {len(instances)} objects has enough valid depth "
+            "inside its mask; check the depth image and depth_scale"
+        )
+    png = instance_image(instances, frame.depth_m.shape)
+    ok, buf = cv2.imencode(".png", png)
+    if not ok:
+        raise InputError("cannot encode the instance image")
+    out_dir.mkdir(parents=True, exist_ok=True)
     objects = []
     for item in items:
         points_file = None
@@ -149,14 +174,8 @@ def measure_frame(
             "total": round((t3 - t0) * 1000, 3),
         },
     }
-    png = instance_image(instances, frame.depth_m.shape)
-    ok, buf = cv2.imencode(".png", png)
-    if not ok:
-        raise InputError("cannot encode the instance image")
-    (out_dir / f"{im_id:06d}_instances.png").write_bytes(buf.tobytes())
-    tmp = out_dir / f"{im_id:06d}.json.tmp"
-    tmp.write_text(json.dumps(result, indent=2))
-    tmp.replace(out_dir / f"{im_id:06d}.json")
+    atomic_write_bytes(out_dir / f"{im_id:06d}_instances.png", buf.tobytes())
+    atomic_write_text(out_dir / f"{im_id:06d}.json", json.dumps(result, indent=2))
     return result
 
 

@@ -2,6 +2,8 @@
 segment -> measure -> fit -> plan one pick for a frame of a BOP scene; writes plan.json (docs/grasping.md).
 
 Exit codes: 0 a plan was found, 1 no feasible grasp (plan.json still written, with rejection counts), 2 bad input.
+plan.json is written atomically (temporary name, then moved into place); an existing one is refused unless
+--overwrite.
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from normpos_grasp.cli.args import check_out_file, int_in
 from normpos_grasp.errors import InputError, NormposError, TemplateError
+from normpos_grasp.io.atomic import atomic_write_text
 
 
 def register(subparsers: Any) -> None:
@@ -24,8 +28,9 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("scene", type=Path, help="BOP scene folder (scene_camera.json, rgb/, depth/)")
     p.add_argument("--cell", type=Path, required=True, help="cell description (YAML, see docs/cells.md)")
-    p.add_argument("--im-id", type=int, required=True, help="image id of the frame")
-    p.add_argument("--out", type=Path, required=True, help="plan.json to write")
+    p.add_argument("--im-id", type=int_in(0, 10**9), required=True, help="image id of the frame")
+    p.add_argument("--out", type=Path, required=True, help="plan.json to write (refused when it exists)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.add_argument("--models", type=Path, default=None, help="template library or BOP models folder (parts the cell "
                    "file does not list); default: the cell's `templates`")  # fmt: skip
     p.add_argument("--segmenter", choices=("gt", "depth", "model"), default="gt", help="instance source (default gt)")
@@ -44,10 +49,12 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.templates.library import load_library
 
     t0 = time.perf_counter()
+    out = check_out_file(args.out, getattr(args, "overwrite", False))
     cell = load_cell(args.cell)
     if not is_scene_dir(args.scene):
         raise InputError(f"{args.scene} is not a BOP scene folder (expected scene_camera.json, rgb/ and depth/)")
     scene = BopScene(args.scene)
+    scene.check_frame(args.im_id)
     models = args.models or cell.templates_path
     if models is None:
         raise InputError("no template library: pass --models or set `templates` in the cell file")
@@ -98,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
         "cell": str(args.cell),
         "segmenter": args.segmenter,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps(doc, indent=1))
     cands = doc["candidates"]
     reasons = ", ".join(f"{k} {v}" for k, v in sorted(cands["rejected_by_reason"].items(), key=lambda kv: -kv[1]))
     print(

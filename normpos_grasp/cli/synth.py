@@ -1,14 +1,33 @@
-"""`normpos-grasp synth`: write a synthetic BOP dataset (parts dropped into a bin, rendered with a sensor model)."""
+"""`normpos-grasp synth`: write a synthetic BOP dataset (parts dropped into a bin, rendered with a sensor model).
+
+The dataset is written into a staging folder `.<OUT name>.partial` next to OUT and moved to OUT only when every
+scene is complete, so an interrupted or failed run leaves no dataset that readers could take as complete. An OUT
+that already holds files is refused; with --overwrite an earlier synthetic dataset there is replaced (a folder
+that does not look like one is still refused).
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import shutil
 import time
+from pathlib import Path
 from typing import Any
 
+from normpos_grasp.cli.args import OVERWRITE_HELP, float_in, int_in
+from normpos_grasp.errors import InputError
 from normpos_grasp.sim.cameras import parse_resolution
 from normpos_grasp.sim.scene import CONTAINERS, SceneOptions
 from normpos_grasp.sim.sensor import SENSOR_PRESETS
+
+#: bounds of the numeric options (a larger value is refused with this range)
+MAX_SCENES = 10_000
+MAX_FRAMES = 1_000
+MAX_COUNT = 100
+MAX_LAYERS = 10
+MIN_SIDE, MAX_SIDE = 16, 4096
 
 
 def register(subparsers: Any) -> None:
@@ -18,18 +37,25 @@ def register(subparsers: Any) -> None:
         description="Drop parts into a bin/table/conveyor with MuJoCo physics, render RGB-D views through a "
         "sensor model and write a BOP dataset (models, rgb, depth, masks, GT poses, camera extrinsics).",
     )
-    parser.add_argument("--out", required=True, help="output dataset folder")
-    parser.add_argument("--scenes", type=int, default=1, help="number of scenes (physics drops)")
-    parser.add_argument("--frames", type=int, default=1, help="camera views per scene")
+    parser.add_argument("--out", required=True, help="output dataset folder (must be empty or absent)")
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP + " (an earlier synth dataset only)")
+    parser.add_argument("--scenes", type=int_in(1, MAX_SCENES), default=1,
+                        help=f"number of scenes (physics drops), 1..{MAX_SCENES}")  # fmt: skip
+    parser.add_argument("--frames", type=int_in(1, MAX_FRAMES), default=1,
+                        help=f"camera views per scene, 1..{MAX_FRAMES}")  # fmt: skip
     parser.add_argument("--sensor", default="d435", choices=sorted(SENSOR_PRESETS), help="sensor model preset")
-    parser.add_argument("--resolution", default="640x480", help="image size WxH in pixels")
+    parser.add_argument("--resolution", default="640x480",
+                        help=f"image size WxH in pixels, each side {MIN_SIDE}..{MAX_SIDE}")  # fmt: skip
     parser.add_argument("--parts", default="default", help="'default' or comma-separated part names")
-    parser.add_argument("--count", type=int, default=10, help="parts per scene")
+    parser.add_argument("--count", type=int_in(0, MAX_COUNT), default=10,
+                        help=f"parts per scene, 0..{MAX_COUNT}")  # fmt: skip
     parser.add_argument("--container", default="bin", choices=CONTAINERS)
-    parser.add_argument("--clutter", type=float, default=0.3, help="0 spread out .. 1 piled in the centre")
-    parser.add_argument("--layers", type=int, default=2, help="drop layers (more = more stacking)")
+    parser.add_argument("--clutter", type=float_in(0.0, 1.0), default=0.3,
+                        help="0 spread out .. 1 piled in the centre")  # fmt: skip
+    parser.add_argument("--layers", type=int_in(1, MAX_LAYERS), default=2,
+                        help=f"drop layers (more = more stacking), 1..{MAX_LAYERS}")  # fmt: skip
     parser.add_argument("--renderer", default="auto", choices=("auto", "mujoco", "raycast"))
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int_in(0, 2**32 - 1), default=0)
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.set_defaults(handler=run)
 
@@ -40,8 +66,15 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.sim.dataset import write_bop_dataset
 
     resolution = parse_resolution(args.resolution)
+    if not all(MIN_SIDE <= side <= MAX_SIDE for side in resolution):
+        raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
     parts = None if args.parts in ("", "default") else [p.strip() for p in args.parts.split(",") if p.strip()]
     scene = SceneOptions(count=args.count, container=args.container, clutter=args.clutter, stack_layers=args.layers)
+    out = Path(args.out)
+    replace_old = _check_out(out, args.overwrite)
+    staging = out.parent / f".{out.name}.partial"
+    if staging.exists():  # left by an interrupted run: never complete, never read
+        shutil.rmtree(staging)
     total = args.scenes * args.frames
     bar = tqdm(total=total, unit="frame", desc="synth", disable=args.no_progress)
     state = {"done": 0}
@@ -53,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         split = write_bop_dataset(
-            args.out,
+            staging,
             args.scenes,
             args.frames,
             sensor=args.sensor,
@@ -64,8 +97,45 @@ def run(args: argparse.Namespace) -> int:
             scene_options=scene,
             backend=args.renderer,
         )
+        _move_into_place(staging, out, replace_old)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(staging)
+        raise
     finally:
         bar.close()
     elapsed = time.perf_counter() - start
-    print(f"wrote {total} frames ({args.scenes} scenes) to {split} in {elapsed:.1f} s")
+    print(f"wrote {total} frames ({args.scenes} scenes) to {out / split.name} in {elapsed:.1f} s")
     return 0
+
+
+def _check_out(out: Path, overwrite: bool) -> bool:
+    """Validate --out before anything is written; True when an earlier dataset there is to be replaced."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is an existing file; give a folder for the dataset")
+    if not out.is_dir() or not any(out.iterdir()):
+        return False
+    if not overwrite:
+        raise InputError(
+            f"--out {out} already holds files (an earlier dataset?); pass --overwrite to replace it "
+            "or choose an empty folder"
+        )
+    if not ((out / "parts.json").is_file() or (out / "models" / "models_info.json").is_file()):
+        raise InputError(
+            f"--out {out} holds files but no synthetic dataset (no parts.json or models/models_info.json); "
+            "--overwrite replaces only an earlier synth output: choose another folder"
+        )
+    return True
+
+
+def _move_into_place(staging: Path, out: Path, replace_old: bool) -> None:
+    """Rename the finished staging folder to `out` (an earlier dataset there is removed after the swap)."""
+    if not replace_old:
+        if out.is_dir():
+            out.rmdir()  # empty (checked before)
+        os.replace(staging, out)
+        return
+    old = out.parent / f".{out.name}.old-{os.getpid()}"
+    os.replace(out, old)
+    os.replace(staging, out)
+    shutil.rmtree(old)
