@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -257,11 +258,15 @@ def _load_mesh(path: Path, where: str) -> Any:
     if not path.is_file():
         raise TemplateError(f"{where}: mesh file '{path}' not found")
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=True)
-    except (ValueError, OSError, KeyError, IndexError) as exc:
+        loaded = trimesh.load(str(path), force="mesh", process=False)
+    except (ValueError, OSError, KeyError, IndexError, TypeError, AttributeError, EOFError, struct.error) as exc:
+        # trimesh's readers raise these on truncated or malformed files
         raise MeshError(f"{where}: cannot read mesh '{path}': {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise MeshError(f"{where}: '{path}' holds no triangle mesh")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise MeshError(f"{where}: mesh '{path}' has NaN or infinite vertices; re-export it from CAD")
+    loaded.process()  # what process=True would do (merge duplicate vertices), once the values are known finite
     return loaded
 
 

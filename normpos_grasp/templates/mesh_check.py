@@ -102,7 +102,7 @@ def check_mesh(
             repairs.append(f"removed {n_v - len(m.vertices)} unreferenced vertices")
         if not m.is_winding_consistent:
             if len(m.faces) <= MAX_FACES_WINDING_FIX:
-                trimesh.repair.fix_winding(m)
+                fix_winding(m)
                 repairs.append("made face winding consistent")
             else:
                 logger.warning(
@@ -113,7 +113,7 @@ def check_mesh(
                     MAX_FACES_WINDING_FIX,
                 )
         if not m.is_watertight:
-            trimesh.repair.fill_holes(m)
+            fill_small_holes(m)
             if m.is_watertight:
                 repairs.append("filled holes")
     else:
@@ -164,3 +164,76 @@ def check_mesh(
     if repairs or problems:
         logger.warning("%s", report.summary())
     return m, report
+
+
+# -- repairs (scipy graphs, no networkx: trimesh.repair needs networkx for these) ------------------------------
+def fix_winding(mesh: trimesh.Trimesh) -> int:
+    """Make the face winding consistent within each connected patch (in place); returns the faces flipped.
+
+    Breadth-first over the face adjacency: a face whose shared edge with its (already fixed) parent runs in the
+    same direction is reversed. The same rule as `trimesh.repair.fix_winding`, on scipy's graph routines.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+    faces = np.asarray(mesh.faces, dtype=np.int64).copy()
+    n = len(faces)
+    adjacency = np.asarray(mesh.face_adjacency, dtype=np.int64).reshape(-1, 2)
+    if n == 0 or len(adjacency) == 0:
+        return 0
+    ones = np.ones(len(adjacency), dtype=np.int8)
+    graph = coo_matrix((ones, (adjacency[:, 0], adjacency[:, 1])), shape=(n, n)).tocsr()
+    _, labels = connected_components(graph, directed=False)
+    _, first = np.unique(labels, return_index=True)
+    flipped = 0
+    for start in first:
+        order, parent = breadth_first_order(graph, int(start), directed=False, return_predecessors=True)
+        for f in order[1:]:
+            a, b = faces[parent[f]], faces[f]
+            a_edges = {(int(a[0]), int(a[1])), (int(a[1]), int(a[2])), (int(a[2]), int(a[0]))}
+            if any((int(b[i]), int(b[(i + 1) % 3])) in a_edges for i in range(3)):
+                faces[f] = b[::-1]
+                flipped += 1
+    if flipped:
+        mesh.faces = faces
+    return flipped
+
+
+def fill_small_holes(mesh: trimesh.Trimesh) -> int:
+    """Close boundary loops of 3 or 4 vertices with triangles wound like their neighbours (in place).
+
+    Returns the number of holes filled; larger holes are left open (as `trimesh.repair.fill_holes` does).
+    """
+    from trimesh.grouping import group_rows
+
+    boundary_rows = group_rows(mesh.edges_sorted, require_count=1)
+    if len(boundary_rows) < 3:
+        return 0
+    edges = np.asarray(mesh.edges, dtype=np.int64)[boundary_rows]  # directed as in their faces
+    nxt: dict[int, int] = {}
+    ambiguous: set[int] = set()
+    for u, v in edges:
+        if int(u) in nxt:
+            ambiguous.add(int(u))
+        nxt[int(u)] = int(v)
+    new_faces: list[list[int]] = []
+    seen: set[int] = set()
+    for start in list(nxt):
+        if start in seen:
+            continue
+        loop = [start]
+        seen.add(start)
+        node = nxt[start]
+        while node != start and node in nxt and node not in seen and len(loop) <= 4:
+            loop.append(node)
+            seen.add(node)
+            node = nxt[node]
+        if node != start or len(loop) not in (3, 4) or ambiguous.intersection(loop):
+            continue
+        # the hole's faces run against the boundary's direction: reverse the loop
+        c = loop[::-1]
+        new_faces.extend([c[0], c[i], c[i + 1]] for i in range(1, len(c) - 1))
+    if not new_faces:
+        return 0
+    mesh.faces = np.vstack([np.asarray(mesh.faces, dtype=np.int64), np.asarray(new_faces, dtype=np.int64)])
+    return len(new_faces)
