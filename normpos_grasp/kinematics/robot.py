@@ -264,9 +264,12 @@ class Robot:
         return np.array(pin.getFrameJacobian(st.model, st.data, st.flange_id, pin.LOCAL_WORLD_ALIGNED))
 
     def manipulability(self, q: ArrayLike) -> float:
-        """Yoshikawa's measure sqrt(det(J J^T)) of the flange Jacobian (0 at a singularity)."""
-        jac = self.jacobian(q)
-        return float(math.sqrt(max(np.linalg.det(jac @ jac.T), 0.0)))
+        """Yoshikawa's measure sqrt(det(J J^T)) of the flange Jacobian (0 at a singularity), m^3.
+
+        Computed as the product of J's singular values: the determinant of J J^T squares the rounding of a singular
+        direction (1e-18 and more at an exact singularity, BLAS-dependent), the singular values do not.
+        """
+        return float(np.prod(np.linalg.svd(self.jacobian(q), compute_uv=False)))
 
     def singularity_distance(self, q: ArrayLike) -> SingularityDistance:
         """Distance of q (6,) from the shoulder, elbow and wrist singularities (see SingularityDistance)."""
