@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from normpos_grasp.camera import Camera, RGBDFrame
 from normpos_grasp.camera.calibration import (
     ControlPoints,
+    ExtrinsicsOptions,
     IntrinsicsOptions,
     board_points,
     calibrate_extrinsics,
@@ -271,3 +272,94 @@ def test_calibrate_cli(tmp_path: Path) -> None:
     cv2.imwrite(str(tmp_path / "now.png"), _textured_scene(invert_pose(bumped)).rgb)
     assert main([*check, str(tmp_path / "now.png")]) == 1
     assert main(["calibrate", "intrinsics", paths[0], "--board", "nine", "--out", str(cam_json)]) == 2
+
+
+# ------------------------------------------------------------------------------ implausible calibrations (issue 18)
+def _cell_points(seed: int, planar: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8 points on (or up to 0.15 m above) a table at z = 0 seen by a camera 0.9 m above it (world z up)."""
+    rng = np.random.default_rng(seed)
+    wfc = look_at([0.5, 0.1, 0.9], [0.5, 0.0, 0.0])
+    heights = np.zeros(8) if planar else rng.uniform(0.0, 0.15, 8)
+    world = np.column_stack([rng.uniform(0.3, 0.7, 8), rng.uniform(-0.2, 0.2, 8), heights])
+    return wfc, world, CAM.project(transform_points(invert_pose(wfc), world))
+
+
+@pytest.mark.parametrize(("seed", "planar"), [(0, True), (1, True), (0, False), (1, False), (2, False)])
+def test_swapped_uv_is_refused(seed: int, planar: bool) -> None:
+    wfc, world, uv = _cell_points(seed, planar)
+    good = calibrate_extrinsics(CAM, world, uv)
+    assert np.linalg.norm(good.world_from_camera[:3, 3] - wfc[:3, 3]) < 1e-6
+    # u and v swapped: the best pose puts the camera ~0.8 m under the table, at an RMS the old 10 px gate took
+    loose = ExtrinsicsOptions(max_rms_px=10.0, floor_z_m=-100.0)
+    try:
+        wrong = calibrate_extrinsics(CAM, world, uv[:, ::-1], loose)
+        assert wrong.world_from_camera[2, 3] < -0.5  # what the old code returned
+    except CalibrationError:
+        pass  # beyond even the old gate for this seed
+    with pytest.raises(CalibrationError, match="below the floor at control point .* u, v columns") as err:
+        calibrate_extrinsics(CAM, world, uv[:, ::-1])
+    assert len(err.value.indices) == 8
+
+
+def test_points_in_millimetres_are_refused() -> None:
+    _, world, uv = _cell_points(3, False)
+    with pytest.raises(CalibrationError, match="span .* m .*looks like millimetres") as err:
+        calibrate_extrinsics(CAM, world * 1000.0, uv)
+    assert len(err.value.indices) == 2
+    # a camera far from a compact set of points (a telephoto view from 25 m): refused the same way
+    tele = Camera(np.array([[40000.0, 0, 320.0], [0, 40000.0, 240.0], [0, 0, 1]]), 640, 480)
+    wfc = look_at([0.5, 0.1, 25.0], [0.5, 0.0, 0.0])
+    far_uv = tele.project(transform_points(invert_pose(wfc), world))
+    with pytest.raises(CalibrationError, match="the solved camera is 2.* m from control point .*millimetres"):
+        calibrate_extrinsics(tele, world, far_uv, ExtrinsicsOptions(max_distance_m=20.0))
+
+
+def test_floor_option_and_gate_defaults() -> None:
+    assert ExtrinsicsOptions().max_rms_px == 2.0
+    # a camera that really looks up at a plate (world z up): refused by default, accepted with its floor
+    wfc = look_at([0.2, 0.15, -1.0], [0.2, 0.15, 0.0], up=(0, -1, 0))
+    world = np.array([[0.06, 0.05, 0], [0.2, 0.04, 0], [0.33, 0.06, 0], [0.05, 0.24, 0], [0.2, 0.25, 0.0]])
+    uv = CAM.project(transform_points(invert_pose(wfc), world))
+    with pytest.raises(CalibrationError, match="below the floor"):
+        calibrate_extrinsics(CAM, world, uv)
+    result = calibrate_extrinsics(CAM, world, uv, ExtrinsicsOptions(floor_z_m=-1.5))
+    assert np.allclose(result.world_from_camera, wfc, atol=1e-6)
+    with pytest.raises(CalibrationError, match=r"below the floor at z = -0.500 m"):
+        calibrate_extrinsics(CAM, world, uv, ExtrinsicsOptions(floor_z_m=-0.5))
+    for bad in ({"max_rms_px": 0.0}, {"max_rms_px": float("nan")}, {"floor_z_m": float("inf")}):
+        with pytest.raises(InputError):
+            ExtrinsicsOptions(**bad)  # type: ignore[arg-type]
+
+
+def test_calibrate_cli_refuses_without_writing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from normpos_grasp.cli.main import main
+
+    cam_json = tmp_path / "camera.json"
+    CAM.save_json(cam_json)
+    before = cam_json.read_bytes()
+    _, world, uv = _cell_points(0, True)
+    write_control_points(tmp_path / "swapped.csv", ControlPoints(tuple("ABCDEFGH"), world, uv[:, ::-1]))
+    write_control_points(tmp_path / "mm.csv", ControlPoints(tuple("ABCDEFGH"), world * 1000.0, uv))
+    write_control_points(tmp_path / "good.csv", ControlPoints(tuple("ABCDEFGH"), world, uv))
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 40)
+    base = ["calibrate", "extrinsics", "--camera", str(cam_json)]
+    cases = [
+        (["--points", str(tmp_path / "swapped.csv"), "--out", str(tmp_path / "a.json")], "below the floor"),
+        (["--points", str(tmp_path / "mm.csv"), "--out", str(tmp_path / "a.json")], "looks like millimetres"),
+        (
+            ["--points", str(tmp_path / "good.csv"), "--out", str(cam_json), "--image", str(tmp_path / "corrupt.png")],
+            "corrupt.png",
+        ),
+        (["--points", str(tmp_path / "good.csv"), "--out", str(tmp_path)], "is a folder"),
+    ]
+    for extra, phrase in cases:
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and phrase in err, err
+        assert not (tmp_path / "a.json").exists() and not list(tmp_path.glob("*.reference.json"))
+        assert cam_json.read_bytes() == before  # --out equal to --camera: the input is untouched
+    code = main([*base, "--points", str(tmp_path / "good.csv"), "--out", str(tmp_path / "a.json"), "--max-rms", "0"])
+    assert code == 2 and "--max-rms: expected pixels in (0, 50]" in capsys.readouterr().err
+    assert not (tmp_path / "a.json").exists()
+    assert main([*base, "--points", str(tmp_path / "good.csv"), "--out", str(tmp_path / "a.json")]) == 0
+    assert Camera.load_json(tmp_path / "a.json").world_from_camera is not None
