@@ -1,4 +1,4 @@
-"""Data types of the template stage: `Template` (mesh + control points + symmetry + grasps) and `TemplateFit`."""
+"""Template records: `Template` (mesh, control points, symmetry, grasps) and `TemplateFit`."""
 
 from __future__ import annotations
 
