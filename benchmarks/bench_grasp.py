@@ -28,6 +28,7 @@ from normpos_grasp.geometry import make_pose
 from normpos_grasp.kinematics import Gripper, Robot
 from normpos_grasp.planning import ArmModel, PlanOptions, plan_pick
 from normpos_grasp.records.template import TemplateFit
+from normpos_grasp.report.scene3d import capsule_mesh
 from normpos_grasp.sim.parts import default_part_library
 from normpos_grasp.sim.scene import SceneOptions, compose_scene
 
@@ -96,7 +97,7 @@ def independent_check(plan, cell: CellConfig, layout, gripper_name: str) -> list
     shapes = [s for s in robot.collision_geometry if s.link != "base"]
     for i, s in enumerate(shapes):
         r, length = s.size
-        geom = trimesh.creation.capsule(length, r) if s.kind == "capsule" else trimesh.creation.cylinder(r, length)
+        geom = capsule_mesh(r, length) if s.kind == "capsule" else trimesh.creation.cylinder(r, length)
         arm.add_object(f"a{i}", geom)
     tool = trimesh.collision.CollisionManager()
     tshapes = gripper.collision_shapes(plan.chosen.candidate.opening_m if gripper.kind == "parallel" else None)

@@ -19,6 +19,7 @@ from normpos_grasp.planning import PlanOptions, plan_pick
 from normpos_grasp.planning.evaluate import EvaluationOptions
 from normpos_grasp.records.normpos import NormPosition, OrientedBox
 from normpos_grasp.records.template import GraspAnnotation, Symmetry, Template, TemplateFit
+from normpos_grasp.report.scene3d import capsule_mesh
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cells"
 FLOOR_Z = 0.01  # inner bin floor of the example UR5e cell (bin centre x = 0.5, walls at x = 0.3 / 0.7)
@@ -215,7 +216,7 @@ def _independent_collisions(
     shapes = [s for s in robot.collision_geometry if s.link != "base"]
     for i, shape in enumerate(shapes):
         r, length = shape.size
-        geom = trimesh.creation.capsule(length, r) if shape.kind == "capsule" else trimesh.creation.cylinder(r, length)
+        geom = capsule_mesh(r, length) if shape.kind == "capsule" else trimesh.creation.cylinder(r, length)
         arm.add_object(f"arm{i}", geom)
     opening = plan.chosen.candidate.opening_m
     tool = trimesh.collision.CollisionManager()
