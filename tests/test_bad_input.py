@@ -164,6 +164,32 @@ def _nan_mesh(c: Case) -> None:
     (c.models / "obj_000001.ply").write_bytes(mesh.export(file_type="ply"))
 
 
+def _truncated_depth(c: Case) -> None:
+    path = c.scene / "depth" / "000000.png"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _truncated_jpeg_rgb(c: Case) -> None:
+    rgb = cv2.imread(str(c.scene / "rgb" / "000000.png"))
+    (c.scene / "rgb" / "000000.png").unlink()
+    ok, buf = cv2.imencode(".jpg", rgb)
+    assert ok
+    (c.scene / "rgb" / "000000.jpg").write_bytes(buf.tobytes()[:-200])
+
+
+def _small_rgb(c: Case) -> None:
+    cv2.imwrite(str(c.scene / "rgb" / "000000.png"), np.zeros((60, 80, 3), np.uint8))
+
+
+def _interrupted_later_scene(c: Case) -> None:
+    """Scene 1 of 2 stopped after its first frame: it lists frames but has no scene_static.json yet."""
+    shutil.copytree(c.scene, c.split / "000001")
+    (c.split / "000001" / "scene_static.json").unlink()
+    (c.root / "camera.json").unlink()
+    (c.root / "parts.json").unlink()
+
+
 def _existing_file(c: Case) -> None:
     c.out.write_bytes(b"precious\n")
 
@@ -254,9 +280,25 @@ ROWS = [
     Row("depth beyond 10 m", _too_far, _measure, "beyond 10 m"),
     Row("all-zero depth", _zero_depth, _measure, "no valid depth"),
     Row("corrupt rgb", _corrupt_rgb, _measure, "cannot decode"),
+    Row("truncated depth PNG", _truncated_depth, _measure, "truncated"),
+    Row("truncated rgb JPEG", _truncated_jpeg_rgb, _measure, "truncated"),
+    Row("rgb and depth sizes differ", _small_rgb, _measure, "80x60"),
+    Row("depth_scale 1e-30", lambda c: c.camera_entry(depth_scale=1e-30), _measure, "depth_scale"),
+    Row(
+        "cam_K focal 1e-6 px",
+        lambda c: c.camera_entry(cam_K=[1e-6, 0, 80.0, 0, 1e-6, 60.0, 0, 0, 1]),
+        _measure,
+        "implausible",
+    ),  # fmt: skip
     # interrupted synth datasets
     Row("interrupted synth: empty scene_camera.json", _interrupted_scene, _measure, "incomplete"),
     Row("interrupted synth: no camera.json", _no_dataset_camera, _measure, "incomplete"),
+    Row(
+        "interrupted synth: later scene partial",
+        _interrupted_later_scene,
+        lambda c: ["measure", str(c.split), "--out", str(c.out)],
+        "incomplete",
+    ),  # fmt: skip
     # output paths and earlier runs
     Row("measure --out is a file", _existing_file, _measure, "existing file"),
     Row("measure --out holds an earlier run", _earlier_run, _measure, "--overwrite"),
@@ -310,15 +352,15 @@ def _snapshot(path: Path) -> dict[str, str]:
 
 @pytest.mark.parametrize("row", ROWS, ids=[r.name for r in ROWS])
 def test_bad_input_gives_one_line_and_exit_2(
-    row: Row, base_dataset: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    row: Row, base_dataset: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
     case = Case(tmp_path / "ds", tmp_path)
     shutil.copytree(base_dataset, case.root)
     row.prepare(case)
     before = _snapshot(case.out)
-    capsys.readouterr()
+    capfd.readouterr()
     code = main(row.argv(case))
-    captured = capsys.readouterr()
+    captured = capfd.readouterr()  # file-descriptor level: codec libraries printing to stderr count too
     lines = captured.err.strip().splitlines()
     assert code == 2, captured.err
     assert len(lines) == 1, captured.err
@@ -351,6 +393,14 @@ def test_the_base_dataset_itself_measures(
     assert main(["measure", str(scene), "--out", str(out), "--overwrite"]) == 0  # ... unless asked
     assert not [p for p in (out / "000000").iterdir() if p.name.startswith(".")]  # no temporary files left
     capsys.readouterr()
+
+
+def test_a_synth_scene_copied_on_its_own_still_reads(base_dataset: Path, tmp_path: Path) -> None:
+    """The interrupted-dataset check looks at the dataset around a scene; a scene taken out of it is complete."""
+    alone = tmp_path / "scenes" / "000000"
+    shutil.copytree(base_dataset / "train" / "000000", alone)
+    frame = BopScene(alone).load_frame(0)
+    assert frame.depth_m.max() > 0 and frame.camera.world_from_camera is not None
 
 
 def test_a_few_saturated_pixels_are_masked_with_a_warning(

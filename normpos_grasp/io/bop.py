@@ -14,14 +14,15 @@ Layout of one scene folder:
     mask/{im_id:06d}_{gt_idx:06d}.png, mask_visib/{im_id:06d}_{gt_idx:06d}.png   (0 / 255)
 
 Validation at the boundary (every failure is a `DatasetError` naming the file): scene_camera.json must map image
-ids to entries with 9 finite `cam_K` values (fx, fy > 0, last row 0 0 1), a finite positive `depth_scale` (never
-defaulted), and, when given, an orthonormal `cam_R_w2c` (det +1) with a finite `cam_t_w2c`. Image sizes are read
-from the file header before decoding (at most `MAX_IMAGE_SIDE` pixels a side); depth must be a 16-bit
-single-channel PNG; saturated (65535) and out-of-range (> `MAX_DEPTH_M`) depths are masked with a warning, or
-refused when more than `MAX_BAD_DEPTH_FRACTION` of the pixels are; a depth image with fewer than
-`MIN_VALID_DEPTH_FRACTION` valid pixels is refused; a colour image that exists but does not decode is refused.
-A scene written by `normpos_grasp.sim` (it has scene_static.json) whose dataset lacks camera.json or parts.json
-was not finished (an interrupted `synth`) and is refused.
+ids to entries with 9 finite `cam_K` values (plausible fx, fy > 0, last row 0 0 1, principal point inside the
+image), a finite `depth_scale` in [MIN_DEPTH_SCALE_MM, MAX_DEPTH_SCALE_MM] (never defaulted), and, when given, an
+orthonormal `cam_R_w2c` (det +1) with a finite `cam_t_w2c`. Image sizes are read from the file header before
+decoding (at most `MAX_IMAGE_SIDE` pixels a side); depth must be a 16-bit single-channel PNG; saturated (65535)
+and out-of-range (outside MIN_DEPTH_M..MAX_DEPTH_M) depths are masked with a warning, or refused when more than
+`MAX_BAD_DEPTH_FRACTION` of the pixels are; a depth image with fewer than `MIN_VALID_DEPTH_FRACTION` valid pixels
+is refused; a colour image that exists but does not decode is refused. A scene of a `normpos_grasp.sim` dataset
+(models/ at the dataset root, scene_static.json in its scenes) whose root lacks camera.json or parts.json was not
+finished (an interrupted `synth`) and is refused.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import json
 import logging
 import math
 import struct
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -59,7 +61,10 @@ SATURATED_DEPTH = 65535
 MAX_BAD_DEPTH_FRACTION = 0.01
 #: fewer valid depth pixels than this fraction of the image refuse the frame
 MIN_VALID_DEPTH_FRACTION = 0.01
-#: largest plausible depth_scale (mm per raw unit) and camera distance from the world origin (mm)
+#: nearest plausible depth (metres): closer non-zero values are noise or a wrong depth_scale
+MIN_DEPTH_M = 0.01
+#: plausible depth_scale range (mm per raw unit) and largest camera distance from the world origin (mm)
+MIN_DEPTH_SCALE_MM = 0.01
 MAX_DEPTH_SCALE_MM = 100.0
 MAX_CAMERA_DISTANCE_MM = 100_000.0
 
@@ -797,13 +802,23 @@ def _jpeg_header(fh: Any, path: Path) -> ImageHeader:
 def _imread(path: Path, checked: bool = True) -> np.ndarray:
     """Decode an image unchanged (bit depth and channels kept); DatasetError when it cannot be decoded.
 
-    checked: the header size has been checked against MAX_IMAGE_SIDE (done first when True).
+    checked: check the header size against MAX_IMAGE_SIDE first. PNG chunk checksums and JPEG end markers are
+    verified before decoding, so a truncated or overwritten file is refused with one clear message (and the
+    codec libraries print nothing).
     """
     import cv2
 
     header = _read_header(path) if checked else None
     try:
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from exc
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        _check_png_chunks(data, path)
+    elif data[:2] == b"\xff\xd8" and data.rstrip(b"\x00")[-2:] != b"\xff\xd9":
+        raise DatasetError(f"cannot decode {path}: the JPEG is truncated (no end-of-image marker)")
+    try:
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
         raise DatasetError(f"cannot decode {path}: {' '.join(str(exc).split())}") from exc
     if img is None:
@@ -813,6 +828,28 @@ def _imread(path: Path, checked: bool = True) -> np.ndarray:
             f"{path}: decoded {img.shape[1]}x{img.shape[0]} pixels, its header says {header.width}x{header.height}"
         )
     return np.asarray(img)
+
+
+def _check_png_chunks(data: bytes, path: Path) -> None:
+    """Walk the PNG chunks: every length in bounds, every CRC right, IDAT present, IEND last."""
+    pos, seen_idat = 8, False
+    while True:
+        if pos + 12 > len(data):
+            raise DatasetError(f"cannot decode {path}: the PNG is truncated (no IEND chunk)")
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind = data[pos + 4 : pos + 8]
+        end = pos + 12 + length
+        if end > len(data):
+            raise DatasetError(f"cannot decode {path}: the PNG is truncated inside a {kind!r} chunk")
+        (crc,) = struct.unpack(">I", data[end - 4 : end])
+        if zlib.crc32(data[pos + 4 : end - 4]) != crc:
+            raise DatasetError(f"cannot decode {path}: corrupt PNG ({kind.decode('latin-1')!r} chunk checksum)")
+        seen_idat |= kind == b"IDAT"
+        if kind == b"IEND":
+            if not seen_idat:
+                raise DatasetError(f"cannot decode {path}: the PNG holds no image data")
+            return
+        pos = end
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -863,9 +900,10 @@ def _depth_scale(entry: dict[str, Any], where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise DatasetError(f"{where}: depth_scale must be a number (mm per raw depth unit), got {value!r}")
     scale = float(value)
-    if not (math.isfinite(scale) and 0 < scale <= MAX_DEPTH_SCALE_MM):
+    if not (math.isfinite(scale) and MIN_DEPTH_SCALE_MM <= scale <= MAX_DEPTH_SCALE_MM):
         raise DatasetError(
-            f"{where}: depth_scale must be finite and in (0, {MAX_DEPTH_SCALE_MM}] mm per raw unit, got {value!r}"
+            f"{where}: depth_scale must be finite and in [{MIN_DEPTH_SCALE_MM}, {MAX_DEPTH_SCALE_MM}] mm per raw "
+            f"unit, got {value!r}"
         )
     return scale
 
@@ -875,6 +913,12 @@ def _checked_camera_entry(entry: dict[str, Any], width: int, height: int, where:
     k = _numbers(entry, "cam_K", 9, where).reshape(3, 3)
     if not (k[0, 0] > 0 and k[1, 1] > 0) or not np.allclose(k[2], [0.0, 0.0, 1.0], atol=1e-9):
         raise DatasetError(f"{where}: cam_K must hold fx, fy > 0 and the last row [0, 0, 1], got {k.tolist()}")
+    fx, fy = float(k[0, 0]), float(k[1, 1])
+    if not (0.04 * width <= fx <= 1000.0 * width and 0.5 <= fy / fx <= 2.0):
+        raise DatasetError(
+            f"{where}: focal lengths fx {fx:g}, fy {fy:g} px are implausible for a {width} px wide image "
+            "(field of view between 0.1 and 170 degrees, fy/fx within 0.5..2)"
+        )
     if not (0 <= k[0, 2] <= width and 0 <= k[1, 2] <= height):
         raise DatasetError(
             f"{where}: principal point ({k[0, 2]:g}, {k[1, 2]:g}) lies outside the {width}x{height} image"
@@ -907,7 +951,7 @@ def _plausible_depth(raw: UInt16Array, scale_m: float, path: Path) -> FloatArray
     n = raw.size
     saturated = raw == SATURATED_DEPTH
     depth = raw.astype(np.float64) * scale_m
-    far = (depth > MAX_DEPTH_M) & ~saturated
+    far = ((depth > MAX_DEPTH_M) | ((depth > 0) & (depth < MIN_DEPTH_M))) & ~saturated
     n_sat, n_far = int(saturated.sum()), int(far.sum())
     if n_sat > MAX_BAD_DEPTH_FRACTION * n:
         raise DatasetError(
@@ -916,13 +960,15 @@ def _plausible_depth(raw: UInt16Array, scale_m: float, path: Path) -> FloatArray
         )
     if n_far > MAX_BAD_DEPTH_FRACTION * n:
         raise DatasetError(
-            f"{path}: {n_far} of {n} depth pixels ({100 * n_far / n:.1f} %) lie beyond {MAX_DEPTH_M:g} m at "
-            f"depth_scale {scale_m * 1000:g} mm/unit; check depth_scale in scene_camera.json"
+            f"{path}: {n_far} of {n} depth pixels ({100 * n_far / n:.1f} %) lie beyond {MAX_DEPTH_M:g} m or "
+            f"nearer than {MIN_DEPTH_M:g} m at depth_scale {scale_m * 1000:g} mm/unit; check depth_scale in "
+            "scene_camera.json"
         )
     if n_sat or n_far:
         logger.warning(
-            "%s: %d saturated and %d beyond-%g m depth pixels masked as invalid", path, n_sat, n_far, MAX_DEPTH_M
-        )
+            "%s: %d saturated and %d out-of-range (outside %g..%g m) depth pixels masked as invalid",
+            path, n_sat, n_far, MIN_DEPTH_M, MAX_DEPTH_M,
+        )  # fmt: skip
         depth[saturated | far] = 0.0
     n_valid = int(np.count_nonzero(depth))
     if n_valid < MIN_VALID_DEPTH_FRACTION * n:
@@ -934,13 +980,15 @@ def _plausible_depth(raw: UInt16Array, scale_m: float, path: Path) -> FloatArray
 def _check_finished(scene_dir: Path) -> None:
     """Refuse a scene of a `normpos_grasp.sim` dataset whose writer did not finish (an interrupted `synth`).
 
-    Such a dataset writes scene_static.json into each scene and camera.json plus parts.json at its root, the
-    latter only once every scene is complete.
+    Such a dataset writes models/ first, scene_static.json into each finished scene, and camera.json plus
+    parts.json at its root only once every scene is complete.
     """
     split = scene_dir.parent
+    root = split.parent
+    if not (root / "models" / "models_info.json").is_file():
+        return  # not inside a dataset folder (for example a scene copied on its own)
     if not (scene_dir / "scene_static.json").is_file() and next(split.glob("*/scene_static.json"), None) is None:
         return
-    root = split.parent
     missing = [name for name in ("camera.json", "parts.json") if not (root / name).is_file()]
     if missing:
         raise DatasetError(
