@@ -172,6 +172,7 @@ def _truncated_depth(c: Case) -> None:
 
 def _truncated_jpeg_rgb(c: Case) -> None:
     rgb = cv2.imread(str(c.scene / "rgb" / "000000.png"))
+    assert rgb is not None
     (c.scene / "rgb" / "000000.png").unlink()
     ok, buf = cv2.imencode(".jpg", rgb)
     assert ok
