@@ -21,8 +21,7 @@ class MissingDependency(NormposError, ImportError):
 
     def __init__(self, package: str, extra: str, feature: str) -> None:
         super().__init__(
-            f"{feature} needs the optional package '{package}': "
-            f"install it with `pip install 'normpos-grasp[{extra}]'`"
+            f"{feature} needs the optional package '{package}': install it with `pip install 'normpos-grasp[{extra}]'`"
         )
         self.package = package
         self.extra = extra
@@ -137,6 +136,15 @@ class ConnectionLost(DriverFault):
 
 class DriverTimeout(DriverFault):
     """The controller did not answer in time."""
+
+
+class ControllerMismatch(NormposError):
+    """The controller is not the arm the plan or cell names (robot model or serial number); nothing was sent."""
+
+
+class TerminationRequested(KeyboardInterrupt):
+    """SIGTERM arrived. Raised in the main thread like Ctrl-C (it is a KeyboardInterrupt, not a failure), so every
+    way out of a motion stops the arm first; the CLI exits with 143 for it and 130 for SIGINT."""
 
 
 class SimulationError(NormposError):

@@ -23,6 +23,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.0.0.x)")
     parser.add_argument("--unlock-delay", type=float, default=5.0, help="seconds before a protective stop unlocks")
     parser.add_argument("--q-home", type=float, nargs=6, default=None, help="initial joints (rad)")
+    parser.add_argument("--serial", default="20265500001", help="serial number the dashboard reports")
     parser.add_argument(
         "--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the 500 Hz loop (0: normal scheduling)"
     )
@@ -31,7 +32,11 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     options = EmulatorOptions(
-        model=args.model, host=args.host, unlock_delay_s=args.unlock_delay, rt_priority=args.rt_priority
+        model=args.model,
+        host=args.host,
+        unlock_delay_s=args.unlock_delay,
+        rt_priority=args.rt_priority,
+        serial=args.serial,
     )
     if args.q_home is not None:
         options.q_home = tuple(args.q_home)

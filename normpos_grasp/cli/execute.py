@@ -1,9 +1,15 @@
-"""`normpos-grasp execute plan.json --robot HOST [--execute]`: check a plan and (only with --execute) run it."""
+"""`normpos-grasp execute plan.json --robot HOST [--execute]`: check a plan and (only with --execute) run it.
+
+Exit codes: 0 executed (or checked in a dry run); 1 the grip was not detected after closing (the pick stopped at the
+grasp); 2 bad input, an unsafe plan, a controller that is not the plan's robot, or a driver fault (one line on
+stderr, the arm stopped); 130 SIGINT (Ctrl-C), 143 SIGTERM: the arm is stopped (stopJ) before disconnecting.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from typing import Any
 
 from normpos_grasp.errors import InputError
@@ -11,12 +17,20 @@ from normpos_grasp.execution import (
     DriverOptions,
     ExecuteOptions,
     GripperIO,
-    RtdeDriver,
     SafetyLimits,
     SimDriver,
+    SupervisedRtdeDriver,
     execute_plan,
+    exit_code,
     load_plan,
     parse_plan,
+    stop_signals,
+)
+from normpos_grasp.execution.interrupts import signal_name
+
+EXIT_CODES = (
+    "exit codes: 0 done (or dry run checked), 1 grip not detected (pick stopped), 2 bad input / unsafe plan / "
+    "controller mismatch / driver fault, 130 SIGINT and 143 SIGTERM (the arm is stopped first)"
 )
 
 
@@ -25,14 +39,25 @@ def register(subparsers: Any) -> None:
         "execute",
         help="check a plan.json against the safety limits and run it on a UR arm (dry run unless --execute)",
         description="Checks every waypoint and trajectory sample against joint limits, speed/acceleration caps and "
-        "the workspace box before anything is sent. Without --execute nothing is sent.",
+        "the workspace box before anything is sent. Without --execute nothing is sent. With --execute the controller's "
+        "robot model (dashboard `get robot model`, and --robot-serial where given) must be the plan's. SIGINT and "
+        "SIGTERM stop the arm (stopJ) before the client disconnects.",
+        epilog=EXIT_CODES,
     )
     parser.add_argument("plan", help="plan.json written by `normpos-grasp plan`")
     parser.add_argument("--robot", required=True, help="controller address (e.g. 192.168.1.10, 127.0.0.1), or 'sim'")
     parser.add_argument("--execute", action="store_true", help="send the plan (default: dry run)")
     parser.add_argument("--cell", default=None, help="cell YAML: take speed/acceleration caps and workspace from it")
     parser.add_argument("--speed-fraction", type=float, default=1.0, help="fraction of rated joint speeds allowed")
-    parser.add_argument("--max-joint-accel", type=float, default=4.0, help="joint acceleration cap, rad/s^2")
+    parser.add_argument(
+        "--max-joint-accel",
+        type=float,
+        default=4.0,
+        help="joint acceleration cap, rad/s^2 (at most 40, ur_rtde's bound)",
+    )
+    parser.add_argument(
+        "--robot-serial", default=None, help="refuse a controller whose `get serial number` is not this one"
+    )
     parser.add_argument(
         "--workspace",
         type=float,
@@ -41,9 +66,14 @@ def register(subparsers: Any) -> None:
         metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
         help="TCP box in the robot base frame, m",
     )
-    parser.add_argument("--close-output", type=int, default=0, help="digital output that closes the gripper")
+    parser.add_argument(
+        "--close-output",
+        type=int,
+        default=0,
+        help="digital output that closes the gripper (0-7 standard, 8-15 configurable)",
+    )
     parser.add_argument("--open-output", type=int, default=1, help="digital output that opens it (-1: none)")
-    parser.add_argument("--grip-input", type=int, default=-1, help="grip-detect digital input (-1: none)")
+    parser.add_argument("--grip-input", type=int, default=-1, help="grip-detect digital input bit 0-17 (-1: none)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.set_defaults(handler=run)
 
@@ -64,30 +94,43 @@ def _limits(args: argparse.Namespace, robot: str) -> SafetyLimits:
 
 
 def run(args: argparse.Namespace) -> int:
-    plan = load_plan(args.plan)
-    parsed = parse_plan(plan)
-    limits = _limits(args, parsed.robot)
-    gripper = GripperIO(
+    gripper = GripperIO(  # validated before anything else: bad I/O indices never reach a moving arm
         close_output=args.close_output,
         open_output=None if args.open_output < 0 else args.open_output,
         grip_detect_input=None if args.grip_input < 0 else args.grip_input,
     )
+    plan = load_plan(args.plan)
+    parsed = parse_plan(plan)
+    limits = _limits(args, parsed.robot)
     if not args.execute:
         report = execute_plan(None, plan, limits, dry_run=True)
     else:
-        if args.robot == "sim":
-            driver: RtdeDriver | SimDriver = SimDriver(limits, gripper, q_home=parsed.q[0])
-        elif args.robot:
-            driver = RtdeDriver(args.robot, limits, gripper, DriverOptions())
-        else:
+        if not args.robot:
             raise InputError("--robot is empty")
-        driver.connect()
-        try:
-            report = execute_plan(driver, plan, limits, dry_run=False, options=ExecuteOptions())
-        finally:
-            driver.disconnect()
-            if isinstance(driver, SimDriver):
-                driver.shutdown()
+        if args.robot == "sim":
+            driver: SupervisedRtdeDriver | SimDriver = SimDriver(limits, gripper, q_home=parsed.q[0])
+        else:
+            driver = SupervisedRtdeDriver(
+                args.robot, limits, gripper, DriverOptions(), expected_serial=args.robot_serial
+            )
+        with stop_signals():
+            try:
+                try:
+                    driver.connect()
+                    report = execute_plan(driver, plan, limits, dry_run=False, options=ExecuteOptions())
+                finally:
+                    driver.disconnect()  # stops the arm first if it still moves
+                    if isinstance(driver, SimDriver):
+                        driver.shutdown()
+            except KeyboardInterrupt as exc:
+                code = exit_code(exc)
+                print(
+                    f"normpos-grasp execute: interrupted by {signal_name(exc)}: arm stopped, nothing further sent "
+                    f"(exit {code})",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                return code
     if args.json:
         print(json.dumps(report.to_dict(), indent=1))
     else:
@@ -97,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"execute: {s.name:>12s} {s.kind:<14s} {s.duration_s:7.2f} s  error {s.error_rad:.2e} rad")
         if report.status == "executed":
             print(f"execute: done, final joint error {report.final_error_rad:.2e} rad")
+        elif report.status == "grip_failed":
+            print("execute: grip not detected: pick stopped at the grasp, arm at rest (exit 1)")
         else:
             print("execute: plan checked (dry run); add --execute to send it")
-    return 0
+    return 1 if report.status == "grip_failed" else 0

@@ -6,13 +6,16 @@ cell's safety limits and nothing is sent. SOURCE: a BOP scene or split folder, `
 bin of N parts in the cell), or `realsense` (optional pyrealsense2 extra). docs/loop.md.
 
 Exit codes: 0 at least one pick planned (and executed with --execute), 1 no feasible grasp in the first frame or a
-pick failed, 2 bad input, a driver fault or an unsafe plan.
+pick failed (also: grip not detected after closing), 2 bad input, a controller that is not the cell's robot, a
+driver fault or an unsafe plan, 130 SIGINT (Ctrl-C) and 143 SIGTERM: the arm is stopped (stopJ) before the client
+disconnects, on every way out.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -27,7 +30,10 @@ def register(subparsers: Any) -> None:
         "run",
         help="the cell loop: capture, measure, fit, plan and (with --execute) pick, repeatedly",
         description="Run the pick loop of a cell on a frame source. Dry run unless --execute: plans are checked "
-        "against the safety limits and nothing is sent to the robot.",
+        "against the safety limits and nothing is sent to the robot. With --execute the controller's robot model "
+        "must be the cell's; SIGINT/SIGTERM stop the arm before the client disconnects.",
+        epilog="exit codes: 0 picks planned/picked, 1 no feasible grasp or a pick failed, 2 bad input / controller "
+        "mismatch / driver fault / unsafe plan, 130 SIGINT, 143 SIGTERM (the arm is stopped first)",
     )
     p.add_argument("--cell", required=True, help="cell YAML (docs/cells.md) or a packaged cell name")
     p.add_argument(
@@ -39,6 +45,9 @@ def register(subparsers: Any) -> None:
         help="UR controller address (127.0.0.1 for `normpos-grasp emulate-ur`), or 'sim' for the simulated driver",
     )
     p.add_argument("--execute", action="store_true", help="send the plans to the robot (default: dry run)")
+    p.add_argument(
+        "--robot-serial", default=None, help="with --execute: refuse a controller whose serial number differs"
+    )
     p.add_argument("--view", action="store_true", help="serve a live 3D view of the cell on 127.0.0.1")
     p.add_argument("--view-port", type=int, default=8765, help="port of the live view (0: any free port)")
     p.add_argument("--max-picks", type=int, default=20, help="most loop turns")
@@ -157,7 +166,8 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
 def run(args: argparse.Namespace) -> int:
     from normpos_grasp.demo import resolve_cell
     from normpos_grasp.errors import InputError
-    from normpos_grasp.execution import DriverOptions, RtdeDriver, SafetyLimits, SimDriver
+    from normpos_grasp.execution import DriverOptions, SafetyLimits, SimDriver, SupervisedRtdeDriver, stop_signals
+    from normpos_grasp.execution.interrupts import exit_code, signal_name
     from normpos_grasp.loop import PickRecord, run_cell_loop
     from normpos_grasp.pipeline import FrameResult
     from normpos_grasp.report.frame import frame_twin
@@ -174,84 +184,99 @@ def run(args: argparse.Namespace) -> int:
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     mode = "execute" if args.execute else "dry run"
-    try:
-        if args.execute:
-            options = DriverOptions(arrive_tol_rad=args.arrive_tol)
-            if args.robot == "sim":
-                driver = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64), options=options)
-            else:
-                driver = RtdeDriver(args.robot, limits, options=options)
-            driver.connect()
-            if not args.no_home:
-                speed = min(1.0, float(np.min(cell.motion.joint_velocity)))
-                accel = min(2.0, float(np.min(cell.motion.joint_acceleration)))
-                driver.move_joints(np.asarray(cell.home_q)[None], speed, accel)
-        if args.view:
-            from normpos_grasp.report.live import LiveView
+    with stop_signals():
+        try:
+            try:
+                if args.execute:
+                    options = DriverOptions(arrive_tol_rad=args.arrive_tol)
+                    if args.robot == "sim":
+                        driver = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64), options=options)
+                    else:
+                        driver = SupervisedRtdeDriver(
+                            args.robot, limits, options=options, expected_serial=args.robot_serial
+                        )
+                    driver.connect()
+                    if not args.no_home:
+                        speed = min(1.0, float(np.min(cell.motion.joint_velocity)))
+                        accel = min(2.0, float(np.min(cell.motion.joint_acceleration)))
+                        driver.move_joints(np.asarray(cell.home_q)[None], speed, accel)
+                if args.view:
+                    from normpos_grasp.report.live import LiveView
 
-            view = LiveView(port=args.view_port, title=f"normpos-grasp run: {cell.name}").start()
-            print(f"live view: {view.url}", flush=True)
-            if driver is not None:
-                view.follow(lambda: {"mode": mode, **arm_state_dict(driver.state(), cell.world_from_base)})
-            else:
-                view.publish(None, {"mode": mode, "joints_rad": [float(v) for v in cell.home_q]})
+                    view = LiveView(port=args.view_port, title=f"normpos-grasp run: {cell.name}").start()
+                    print(f"live view: {view.url}", flush=True)
+                    if driver is not None:
+                        view.follow(lambda: {"mode": mode, **arm_state_dict(driver.state(), cell.world_from_base)})
+                    else:
+                        view.publish(None, {"mode": mode, "joints_rad": [float(v) for v in cell.home_q]})
 
-        def on_plan(result: FrameResult) -> None:
-            if view is None and out is None:
-                return
-            scene = frame_twin(result, cell, candidates=True)
-            if view is not None:
-                view.publish(scene, None if driver is not None else _dry_state(result, mode))
-            if out is not None:
-                scene.export_glb(out / "scene.glb")  # `normpos-grasp view --report OUT` follows it
+                def on_plan(result: FrameResult) -> None:
+                    if view is None and out is None:
+                        return
+                    scene = frame_twin(result, cell, candidates=True)
+                    if view is not None:
+                        view.publish(scene, None if driver is not None else _dry_state(result, mode))
+                    if out is not None:
+                        scene.export_glb(out / "scene.glb")  # `normpos-grasp view --report OUT` follows it
 
-        done_so_far: list[PickRecord] = []
+                done_so_far: list[PickRecord] = []
 
-        def on_pick(record: PickRecord) -> None:
-            doc = record.plan_json or {}
-            target = (doc.get("target") or {}).get("template", "-")
-            grasp = (doc.get("grasp") or {}).get("id", "-")
-            cands = doc.get("candidates") or {}
-            ms = ", ".join(f"{k} {v:.0f}" for k, v in record.timings_ms.items())
+                def on_pick(record: PickRecord) -> None:
+                    doc = record.plan_json or {}
+                    target = (doc.get("target") or {}).get("template", "-")
+                    grasp = (doc.get("grasp") or {}).get("id", "-")
+                    cands = doc.get("candidates") or {}
+                    ms = ", ".join(f"{k} {v:.0f}" for k, v in record.timings_ms.items())
+                    print(
+                        f"pick {record.index + 1}: {record.status} ({record.check}); target {target}, grasp {grasp}; "
+                        f"{cands.get('feasible', 0)} feasible of {cands.get('total', 0)} candidates; ms: {ms}",
+                        flush=True,
+                    )
+                    if record.fault:
+                        print(f"  fault: {record.fault}", flush=True)
+                    if record.status == "no_feasible_grasp" and cands.get("rejected_by_reason"):
+                        reasons = sorted(cands["rejected_by_reason"].items(), key=lambda kv: -kv[1])
+                        print("  rejected: " + ", ".join(f"{k} {v}" for k, v in reasons), flush=True)
+                    if out is not None:
+                        if record.plan_json is not None:
+                            _write_json(out / f"plan_{record.index + 1:02d}.json", record.plan_json)
+                        done_so_far.append(record)  # run.json grows pick by pick (`normpos-grasp view` shows it)
+                        _write_json(
+                            out / "run.json", _run_summary(cell.name, args, source_kind, mode, done_so_far, t_start)
+                        )
+
+                records = run_cell_loop(
+                    cell,
+                    source,
+                    segmenter,
+                    library,
+                    driver,
+                    execute=bool(args.execute),
+                    max_picks=args.max_picks,
+                    on_pick=on_pick,
+                    on_plan=on_plan,
+                )
+                if view is not None and args.linger > 0:
+                    time.sleep(args.linger)
+            finally:
+                if view is not None:
+                    view.close()
+                if driver is not None:
+                    driver.disconnect()
+                    if isinstance(driver, SimDriver):
+                        driver.shutdown()
+                close = getattr(source, "close", None)
+                if callable(close):
+                    close()
+        except KeyboardInterrupt as exc:
+            code = exit_code(exc)
             print(
-                f"pick {record.index + 1}: {record.status} ({record.check}); target {target}, grasp {grasp}; "
-                f"{cands.get('feasible', 0)} feasible of {cands.get('total', 0)} candidates; ms: {ms}",
+                f"normpos-grasp run: interrupted by {signal_name(exc)}: arm stopped, nothing further sent "
+                f"(exit {code})",
+                file=sys.stderr,
                 flush=True,
             )
-            if record.fault:
-                print(f"  fault: {record.fault}", flush=True)
-            if record.status == "no_feasible_grasp" and cands.get("rejected_by_reason"):
-                reasons = sorted(cands["rejected_by_reason"].items(), key=lambda kv: -kv[1])
-                print("  rejected: " + ", ".join(f"{k} {v}" for k, v in reasons), flush=True)
-            if out is not None:
-                if record.plan_json is not None:
-                    _write_json(out / f"plan_{record.index + 1:02d}.json", record.plan_json)
-                done_so_far.append(record)  # run.json grows pick by pick (`normpos-grasp view` shows it)
-                _write_json(out / "run.json", _run_summary(cell.name, args, source_kind, mode, done_so_far, t_start))
-
-        records = run_cell_loop(
-            cell,
-            source,
-            segmenter,
-            library,
-            driver,
-            execute=bool(args.execute),
-            max_picks=args.max_picks,
-            on_pick=on_pick,
-            on_plan=on_plan,
-        )
-        if view is not None and args.linger > 0:
-            time.sleep(args.linger)
-    finally:
-        if view is not None:
-            view.close()
-        if driver is not None:
-            driver.disconnect()
-            if isinstance(driver, SimDriver):
-                driver.shutdown()
-        close = getattr(source, "close", None)
-        if callable(close):
-            close()
+            return code
     statuses = [r.status for r in records]
     summary = _run_summary(cell.name, args, source_kind, mode, records, t_start)
     if out is not None:

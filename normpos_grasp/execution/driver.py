@@ -23,6 +23,7 @@ from normpos_grasp.errors import (
     DriverFault,
     DriverTimeout,
     EmergencyStop,
+    InputError,
     ProtectiveStop,
     SafetyViolation,
 )
@@ -32,6 +33,8 @@ from .safety import SafetyLimits
 
 log = logging.getLogger(__name__)
 
+STANDARD_OUTPUTS, CONFIGURABLE_OUTPUTS, TOOL_OUTPUTS = 8, 8, 2  # UR digital outputs per bank
+INPUT_BITS = 18  # digital input bits: standard 0-7, configurable 8-15, tool 16-17
 SAFETY_BIT_PROTECTIVE = 1 << 2
 SAFETY_BIT_EMERGENCY = 1 << 7
 ROBOT_MODE_RUNNING = 7
@@ -82,6 +85,27 @@ class GripperIO:
     settle_s: float = 0.3
     tool: bool = False
 
+    def __post_init__(self) -> None:
+        """Indices within the controller's ranges: outputs 0-7 standard, 8-15 configurable (tool: 0-1);
+        grip-detect input bit 0-17 (standard, configurable, tool 16-17). InputError otherwise, before any motion."""
+        n_out = TOOL_OUTPUTS if self.tool else STANDARD_OUTPUTS + CONFIGURABLE_OUTPUTS
+        kind = "tool output (0-1)" if self.tool else "digital output (0-7 standard, 8-15 configurable)"
+        for name, value in (("close_output", self.close_output), ("open_output", self.open_output)):
+            if value is None and name == "open_output":
+                continue
+            if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < n_out:
+                raise InputError(f"gripper {name} = {value!r} is not a {kind} of a UR controller")
+        if self.open_output is not None and self.open_output == self.close_output:
+            raise InputError(f"gripper open_output and close_output are both {self.close_output}")
+        gi = self.grip_detect_input
+        if gi is not None and (not isinstance(gi, int) or isinstance(gi, bool) or not 0 <= gi < INPUT_BITS):
+            raise InputError(
+                f"gripper grip_detect_input = {gi!r} is not a digital input bit of a UR controller "
+                "(0-7 standard, 8-15 configurable, 16-17 tool)"
+            )
+        if not (np.isfinite(self.settle_s) and 0.0 <= self.settle_s <= 10.0):
+            raise InputError(f"gripper settle_s = {self.settle_s!r} s must be in [0, 10]")
+
 
 @dataclass(frozen=True)
 class DriverOptions:
@@ -90,7 +114,9 @@ class DriverOptions:
     connect_timeout_s: connecting. stale_state_s: no fresh state for this long during a move = connection lost.
     move_margin_s, move_factor: a move times out after move_factor * expected duration + move_margin_s.
     poll_s: monitor period during moves. arrive_tol_rad: a move is complete when every joint is this close.
-    stop_decel: joint deceleration for stops, rad/s^2. stream_period_s: servo streaming period.
+    stop_decel: joint deceleration for stops, rad/s^2. halt_decel: joint deceleration of the stop issued when a
+    motion call is left by an interrupt (SIGINT/SIGTERM) or an exception, rad/s^2 (10: UR's protective-stop ramp
+    as the loopback controller models it; 0.8 rad/s stops in 80 ms). stream_period_s: servo streaming period.
     watchdog_s: controller-side watchdog while streaming (the program stops if no command arrives for this long).
     """
 
@@ -101,6 +127,7 @@ class DriverOptions:
     poll_s: float = 0.004
     arrive_tol_rad: float = 1e-4
     stop_decel: float = 3.0
+    halt_decel: float = 10.0
     stream_period_s: float = 0.008
     watchdog_s: float = 0.25
 
@@ -197,8 +224,10 @@ class GuardedDriver(abc.ABC):
     def _backend_stop(self, decel: float) -> None: ...
 
     @abc.abstractmethod
-    def _backend_link_lost(self) -> None:
-        """The state stream is gone: halt the arm by a path that does not need it (no motion is re-sent)."""
+    def _backend_link_lost(self) -> str | None:
+        """The state stream is gone: halt the arm by a path that does not need it (no motion is re-sent).
+
+        Returns a note for the fault message when that path failed too (None: the arm was stopped)."""
         ...
 
     @abc.abstractmethod
@@ -225,7 +254,43 @@ class GuardedDriver(abc.ABC):
         self._check_state(st, during="connect", stop=False)
 
     def disconnect(self) -> None:
-        self._backend_disconnect()
+        """Stop the arm if it still moves (every way out stops it first), then close the connection."""
+        try:
+            if self._backend_connected() and float(np.max(np.abs(self._backend_state().qd))) > 1e-4:
+                log.warning("disconnect while the arm moves: stopping it first")
+                self._backend_stop(self.options.halt_decel)
+        except (OSError, RuntimeError, DriverFault) as exc:
+            log.warning("stop before disconnect failed (%s); stopping the program another way", exc)
+            self._halt_fallback()
+        finally:
+            self._backend_disconnect()
+
+    def _halt_fallback(self) -> None:
+        """Stop the arm without the motion channel (e.g. the dashboard); never raises."""
+        try:
+            note = self._backend_link_lost()
+            if note:
+                log.warning("%s", note)
+        except (OSError, RuntimeError, DriverFault) as exc:
+            log.error("could not stop the arm by any channel: %s", exc)
+
+    def _halt_on_exit(self, exc: BaseException, what: str) -> None:
+        """A motion call is being left by `exc`. Faults the driver raised itself have already stopped the arm (or the
+        controller has); anything else (KeyboardInterrupt, TerminationRequested, an unexpected error) stops the arm
+        now with `halt_decel`, before the exception travels on, and latches a fault so nothing further is sent."""
+        if isinstance(exc, DriverFault) and self._fault is not None:
+            return
+        reason = "SIGTERM" if type(exc).__name__ == "TerminationRequested" else type(exc).__name__
+        try:
+            if not self._backend_connected():
+                raise ConnectionLost("not connected")
+            self._backend_stop(self.options.halt_decel)
+            log.info("%s left by %s: arm stopped", what, reason)
+        except (OSError, RuntimeError, DriverFault) as err:
+            log.warning("stop after %s in %s failed (%s); stopping the program another way", reason, what, err)
+            self._halt_fallback()
+        if self._fault is None:
+            self._fault = DriverFault(f"{what} interrupted by {reason}; arm stopped")
 
     def state(self) -> ArmState:
         if not self._backend_connected():
@@ -288,8 +353,12 @@ class GuardedDriver(abc.ABC):
             timeout_s if timeout_s is not None else expected * self.options.move_factor + self.options.move_margin_s
         )
         self.commands_sent += 1
-        self._backend_move_path(wps, speed, accel)
-        return self._monitor(wps[-1], timeout, "move_joints")
+        try:
+            self._backend_move_path(wps, speed, accel)
+            return self._monitor(wps[-1], timeout, "move_joints")
+        except BaseException as exc:
+            self._halt_on_exit(exc, "move_joints")
+            raise
 
     def move_linear(self, base_from_tcp: ArrayLike, speed: float, accel: float) -> ArmState:
         self._require_ready()
@@ -309,8 +378,12 @@ class GuardedDriver(abc.ABC):
             prev = pose[:3, 3]
         timeout = (length / speed + speed / accel) * self.options.move_factor + self.options.move_margin_s
         self.commands_sent += 1
-        self._backend_move_linear(poses, speed, accel)
-        return self._monitor_linear(poses[-1], timeout)
+        try:
+            self._backend_move_linear(poses, speed, accel)
+            return self._monitor_linear(poses[-1], timeout)
+        except BaseException as exc:
+            self._halt_on_exit(exc, "move_linear")
+            raise
 
     def follow_trajectory(self, times: ArrayLike, q: ArrayLike) -> ArmState:
         """Stream a time-parameterised joint trajectory with servoj at `stream_period_s`, then settle on its end.
@@ -363,13 +436,19 @@ class GuardedDriver(abc.ABC):
                 self._backend_servo(target, period)
             if slowed_s > 0:
                 log.info("trajectory stream ran %.3f s slower than planned (late ticks)", slowed_s)
+            self._settle_servo(samples[-1])
+        except BaseException as exc:
+            self._halt_on_exit(exc, "follow_trajectory")
+            raise
         finally:
-            if self._fault is None:
-                self._settle_servo(samples[-1])
             self._backend_servo_end()
-        return self._monitor(
-            qs[-1], self.options.move_margin_s, "follow_trajectory", tol=10 * self.options.arrive_tol_rad
-        )
+        try:
+            return self._monitor(
+                qs[-1], self.options.move_margin_s, "follow_trajectory", tol=10 * self.options.arrive_tol_rad
+            )
+        except BaseException as exc:
+            self._halt_on_exit(exc, "follow_trajectory")
+            raise
 
     def _settle_servo(self, target: FloatArray) -> None:
         deadline = time.monotonic() + 2.0
@@ -421,7 +500,7 @@ class GuardedDriver(abc.ABC):
 
     def _latch(self, fault: DriverFault) -> DriverFault:
         self._fault = fault
-        log.error("driver fault: %s", fault)
+        log.info("driver fault latched: %s", fault)
         return fault
 
     def _check_state(self, st: ArmState, during: str, stop: bool) -> None:
@@ -431,10 +510,14 @@ class GuardedDriver(abc.ABC):
             fault = EmergencyStop(f"emergency stop during {during} (safety_mode {st.safety_mode})")
         elif st.protective_stopped:
             fault = ProtectiveStop(f"protective stop during {during} (safety_mode {st.safety_mode})")
-        elif time.monotonic() - st.received_at > self.options.stale_state_s or not self._backend_connected():
+        elif not self._backend_connected():
             fault = ConnectionLost(
-                f"no fresh robot state for {time.monotonic() - st.received_at:.2f} s during {during}; "
-                "not retrying: reconnect with resume()"
+                f"the link to the controller went down during {during}; not retrying: reconnect with resume()"
+            )
+        elif time.monotonic() - st.received_at > self.options.stale_state_s:
+            fault = ConnectionLost(
+                f"no fresh robot state for {time.monotonic() - st.received_at:.2f} s during {during} (controller "
+                "stalled or link lost); not retrying: reconnect with resume()"
             )
         elif st.robot_mode != ROBOT_MODE_RUNNING:
             fault = DriverFault(f"robot not running (robot_mode {st.robot_mode}) during {during}: power on first")
@@ -444,7 +527,9 @@ class GuardedDriver(abc.ABC):
             if stop:
                 try:
                     if isinstance(fault, ConnectionLost):
-                        self._backend_link_lost()
+                        note = self._backend_link_lost()
+                        if note:
+                            fault = ConnectionLost(f"{fault}; {note}")
                     elif not isinstance(fault, EmergencyStop | ProtectiveStop):
                         self._backend_stop(self.options.stop_decel)
                 except (OSError, RuntimeError, DriverFault) as exc:

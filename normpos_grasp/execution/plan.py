@@ -68,7 +68,8 @@ class StepRecord:
 
 @dataclass(frozen=True)
 class ExecutionReport:
-    """Outcome of `execute_plan`. status: "dry_run" (checked, nothing sent) or "executed".
+    """Outcome of `execute_plan`. status: "dry_run" (checked, nothing sent), "executed", or "grip_failed" (the
+    grip-detect input stayed low after closing: the pick stopped at the grasp, the arm at rest; a result to act on).
 
     final_q: (6,) joints at the end (None in a dry run without state). final_error_rad: max joint error to the
     plan's last waypoint. grip_detected: the grip-detect input after closing (None when not configured/checked).
@@ -203,6 +204,10 @@ def execute_plan(
     opts = options or ExecuteOptions()
     parsed = parse_plan(plan)
     used = check_plan(parsed, limits)
+    # movej speed / acceleration between waypoints: the options, never above the caps
+    speed = min(opts.speed, float(np.min(used.max_joint_speed)))
+    accel = min(opts.accel, float(np.min(used.max_joint_accel)))
+    used.check_joint_speed(speed, accel)
     segments = _split_trajectory(parsed) if parsed.traj_t is not None else None
     messages = [f"{len(parsed.q)} waypoints: {', '.join(parsed.names)}"]
     if parsed.traj_t is not None:
@@ -219,7 +224,7 @@ def execute_plan(
     start = driver.state()
     if float(np.max(np.abs(start.q - parsed.q[0]))) > opts.start_tol_rad:
         t0 = time.monotonic()
-        st = driver.move_joints(parsed.q[0][None], opts.speed, opts.accel)
+        st = driver.move_joints(parsed.q[0][None], speed, accel)
         steps.append(
             StepRecord(parsed.names[0], "approach", time.monotonic() - t0, float(np.max(np.abs(st.q - parsed.q[0]))))
         )
@@ -241,7 +246,7 @@ def execute_plan(
             st = driver.follow_trajectory(seg_t, seg_q) if len(seg_t) > 1 else driver.state()
             kind = "trajectory"
         else:
-            st = driver.move_joints(parsed.q[k][None], opts.speed, opts.accel)
+            st = driver.move_joints(parsed.q[k][None], speed, accel)
             kind = "movej"
         steps.append(StepRecord(name, kind, time.monotonic() - t0, float(np.max(np.abs(st.q - parsed.q[k])))))
         if name in opts.close_at:
@@ -251,6 +256,19 @@ def execute_plan(
             if opts.check_grip and getattr(getattr(driver, "gripper", None), "grip_detect_input", None) is not None:
                 grip = driver.grip_detected()
                 messages.append(f"grip detected: {grip}")
+                if not grip:
+                    # a missed grip stops the pick here (the arm rests at the grasp): no carrying on to the place
+                    messages.append(f"grip not detected after closing at {name!r}: pick stopped, nothing further sent")
+                    final = driver.state()
+                    return ExecutionReport(
+                        "grip_failed",
+                        tuple(steps),
+                        final.q,
+                        float(np.max(np.abs(final.q - parsed.q[-1]))),
+                        False,
+                        getattr(driver, "commands_sent", 0) - sent0,
+                        tuple(messages),
+                    )
         if name in opts.open_at:
             t0 = time.monotonic()
             driver.gripper_open()

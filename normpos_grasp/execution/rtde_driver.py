@@ -11,11 +11,12 @@ from __future__ import annotations
 import logging
 import socket
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from normpos_grasp.errors import ConnectionLost, DriverFault, MissingDependency
+from normpos_grasp.errors import ConnectionLost, ControllerMismatch, DriverFault, MissingDependency
 from normpos_grasp.geometry.transforms import pose_from_ur, pose_to_ur
 from normpos_grasp.typing import FloatArray
 
@@ -38,11 +39,79 @@ def _import_rtde() -> tuple[Any, Any, Any]:
     return rtde_control, rtde_receive, rtde_io
 
 
+@dataclass(frozen=True)
+class ControllerIdentity:
+    """What a controller's dashboard server says it is. model: `get robot model` ("UR5", "UR10", "UR20", ...);
+    serial: `get serial number`; software: `PolyscopeVersion` (e-Series and UR20/UR30 run software 5.x)."""
+
+    model: str
+    serial: str
+    software: str
+
+    @property
+    def software_major(self) -> int:
+        for token in self.software.replace("URSoftware", " ").split():
+            head = token.split(".", 1)[0]
+            if head.isdigit():
+                return int(head)
+        return -1
+
+
+def dashboard_query(host: str, lines: tuple[str, ...], timeout_s: float = 2.0) -> list[str]:
+    """Send dashboard lines over one connection (port 29999) and return the replies; ConnectionLost on failure."""
+    try:
+        with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            f = sock.makefile("rwb", buffering=0)
+            f.readline()  # welcome line
+            replies = []
+            for line in lines:
+                f.write(line.encode() + b"\n")
+                replies.append(f.readline().decode(errors="replace").strip())
+            return replies
+    except OSError as exc:
+        raise ConnectionLost(f"dashboard server of {host} did not answer ({exc}); is the controller on?") from exc
+
+
+def read_controller_identity(host: str, timeout_s: float = 2.0) -> ControllerIdentity:
+    model, serial, software = dashboard_query(
+        host, ("get robot model", "get serial number", "PolyscopeVersion"), timeout_s
+    )
+    return ControllerIdentity(model, serial, software)
+
+
+def check_controller(host: str, model: str, serial: str | None = None, timeout_s: float = 2.0) -> ControllerIdentity:
+    """Refuse (ControllerMismatch) a controller that is not a `model` (ur_params name, e.g. "ur5e") with `serial`.
+
+    The dashboard names the family ("UR5" for a UR5 and a UR5e); an e-Series model also needs software 5.x."""
+    ident = read_controller_identity(host, timeout_s)
+    want = model.lower()
+    family = "UR" + want.upper().removeprefix("UR").removesuffix("E")
+    if ident.model.strip().upper() != family:
+        raise ControllerMismatch(
+            f"the controller at {host} is a {ident.model!r} (dashboard `get robot model`), the plan/cell is for "
+            f"{want}; nothing was sent"
+        )
+    if want.endswith("e") and 0 <= ident.software_major < 5:
+        raise ControllerMismatch(
+            f"the controller at {host} runs {ident.software!r}, a CB-series arm, the plan/cell is for the e-Series "
+            f"{want}; nothing was sent"
+        )
+    if serial is not None and ident.serial.strip() != str(serial).strip():
+        raise ControllerMismatch(
+            f"the controller at {host} has serial number {ident.serial!r}, the cell names {serial!r}; nothing was sent"
+        )
+    return ident
+
+
 class RtdeDriver(GuardedDriver):
     """Arm driver for a UR controller (or the loopback emulator) at `host`.
 
     limits: SafetyLimits checked before sending. gripper: digital-output wiring. options: timeouts.
-    servo_lookahead_s, servo_gain: servoJ parameters for streaming.
+    servo_lookahead_s, servo_gain: servoJ parameters for streaming. verify_controller: before connecting, read the
+    robot model (and `expected_serial` where given) from the dashboard and refuse a mismatch (ControllerMismatch).
+
+    The ur_rtde client runs in this process: its aborts end the process. `SupervisedRtdeDriver` runs it in a child.
     """
 
     def __init__(
@@ -53,9 +122,13 @@ class RtdeDriver(GuardedDriver):
         options: DriverOptions | None = None,
         servo_lookahead_s: float = 0.1,
         servo_gain: float = 300.0,
+        verify_controller: bool = True,
+        expected_serial: str | None = None,
     ) -> None:
         super().__init__(limits, gripper, options)
         self.host = host
+        self.verify_controller = verify_controller
+        self.expected_serial = expected_serial
         self.servo_lookahead_s = servo_lookahead_s
         self.servo_gain = servo_gain
         self._c: Any = None
@@ -83,6 +156,8 @@ class RtdeDriver(GuardedDriver):
 
     def _backend_connect(self) -> None:
         self._release_abandoned()
+        if self.verify_controller:
+            check_controller(self.host, self.limits.model, self.expected_serial)
         rtde_control, rtde_receive, rtde_io = _import_rtde()
         try:
             self._r = rtde_receive.RTDEReceiveInterface(self.host)
@@ -136,17 +211,18 @@ class RtdeDriver(GuardedDriver):
     def _backend_connected(self) -> bool:
         return bool(self._r is not None and self._c is not None and not self._link_lost and self._r.isConnected())
 
-    def _backend_link_lost(self) -> None:
+    def _backend_link_lost(self) -> str | None:
         """Stop the program over a fresh dashboard connection (independent of RTDE); never re-send motion."""
         self._link_lost = True
+        note = None
         try:
             with socket.create_connection((self.host, DASHBOARD_PORT), timeout=1.0) as sock:
                 f = sock.makefile("rwb", buffering=0)
                 f.readline()
                 f.write(b"stop\n")
-                log.warning("link lost: dashboard stop -> %s", f.readline().decode(errors="replace").strip())
+                log.info("link lost: dashboard stop -> %s", f.readline().decode(errors="replace").strip())
         except OSError as exc:
-            log.error("link lost and the dashboard is unreachable too (%s): the arm may still be moving", exc)
+            note = f"the dashboard is unreachable too ({exc}): the arm may still be moving"
         # ur_rtde 1.6.5's control interface reconnects on its own after a dropped link, re-uploading its script in a
         # loop, and calling into it right after a hard drop (disconnect() included) can crash the process. Set it
         # aside so this fault reaches the caller first; resume() or disconnect() ends it (_release_abandoned). The
@@ -154,6 +230,7 @@ class RtdeDriver(GuardedDriver):
         if self._c is not None:
             self._abandoned.append(self._c)
             self._c = None
+        return note
 
     def _backend_state(self) -> ArmState:
         if self._r is None:

@@ -19,6 +19,14 @@ from normpos_grasp.validation import as_float_array, check_pose
 
 JOINT_TOL = 1e-9  # rad, numerical slack on joint limits
 
+# Ceilings on caps. UR publishes no joint acceleration limits (the ROS description: has_acceleration_limits: false),
+# so the acceleration and tool ceilings are the bounds ur_rtde 1.6.5 itself enforces on moveJ/moveL arguments
+# (rtde_control_interface.h: UR_JOINT_ACCELERATION_MAX 40.0 rad/s^2, UR_TOOL_VELOCITY_MAX 3.0 m/s,
+# UR_TOOL_ACCELERATION_MAX 150.0 m/s^2). Joint speed caps are bounded by the rated joint speeds (ur_params).
+MAX_JOINT_ACCEL_CEILING = 40.0  # rad/s^2
+MAX_TOOL_SPEED_CEILING = 3.0  # m/s
+MAX_TOOL_ACCEL_CEILING = 150.0  # m/s^2
+
 
 @dataclass(frozen=True)
 class SafetyLimits:
@@ -43,6 +51,30 @@ class SafetyLimits:
     max_tool_speed: float = 1.0
     max_tool_accel: float = 2.0
     box_from_base: FloatArray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self) -> None:
+        """Caps must be positive, finite and within the robot's rated joint speeds and the acceleration ceilings."""
+        rated = np.asarray(ur_params(self.model).velocity_limit, dtype=np.float64)
+        for name, value, ceiling, unit in (
+            ("max_joint_speed", self.max_joint_speed, rated, "rad/s (the rated joint speeds)"),
+            ("max_joint_accel", self.max_joint_accel, np.full(6, MAX_JOINT_ACCEL_CEILING), "rad/s^2"),
+        ):
+            v = np.asarray(value, dtype=np.float64)
+            if v.shape != (6,) or not np.all(np.isfinite(v)) or np.any(v <= 0.0):
+                raise SafetyViolation(f"{name} must be 6 positive finite values, got {np.asarray(value).tolist()}")
+            over = v > ceiling * (1 + 1e-9)
+            if np.any(over):
+                j = int(np.argmax(over))
+                raise SafetyViolation(
+                    f"{name} joint {j} = {v[j]:g} exceeds the {self.model} ceiling {ceiling[j]:g} {unit}",
+                    detail={"joint": j, "value": float(v[j]), "ceiling": float(ceiling[j])},
+                )
+        for tname, x, top, tunit in (
+            ("max_tool_speed", self.max_tool_speed, MAX_TOOL_SPEED_CEILING, "m/s"),
+            ("max_tool_accel", self.max_tool_accel, MAX_TOOL_ACCEL_CEILING, "m/s^2"),
+        ):
+            if not (np.isfinite(x) and 0.0 < x <= top):
+                raise SafetyViolation(f"{tname} = {x:g} {tunit} must be in (0, {top:g}] {tunit}")
 
     @classmethod
     def from_cell(cls, cell: Any, max_tool_accel: float = 2.0) -> SafetyLimits:
@@ -77,6 +109,11 @@ class SafetyLimits:
         """Limits from the UR parameter table: joint limits, `speed_fraction` of the rated joint speeds, a
         joint acceleration cap (rad/s^2), and a workspace box (default: a cube of twice the reach)."""
         p = ur_params(model)
+        if not (np.isfinite(max_joint_accel) and 0.0 < max_joint_accel <= MAX_JOINT_ACCEL_CEILING):
+            raise SafetyViolation(
+                f"joint acceleration cap {max_joint_accel:g} rad/s^2 must be in (0, {MAX_JOINT_ACCEL_CEILING:g}] "
+                "(ur_rtde's UR_JOINT_ACCELERATION_MAX; UR publishes no higher rated value)"
+            )
         if not 0.0 < speed_fraction <= 1.0:
             raise SafetyViolation(f"speed_fraction must be in (0, 1], got {speed_fraction}")
         upper = np.array([min(v, 2 * np.pi) if np.isfinite(v) else 2 * np.pi for v in p.position_limit])

@@ -11,6 +11,7 @@ import logging
 import re
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,7 +80,8 @@ class EmulatorOptions:
     unlock_delay_s: a protective stop cannot be unlocked before this many seconds (UR: 5 s).
     q_home: initial joints (rad). control_version: (major, minor, bugfix, build) reported over RTDE.
     rt_priority: 0 = normal scheduling; 1-99 = SCHED_FIFO for the control loop thread (like a real controller;
-    use on a loaded machine to keep the 2 ms period, if the process may).
+    use on a loaded machine to keep the 2 ms period, if the process may). serial: the dashboard's
+    `get serial number` answer.
     """
 
     model: str = "ur5e"
@@ -89,6 +91,7 @@ class EmulatorOptions:
     q_home: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
     control_version: tuple[int, int, int, int] = (5, 15, 0, 0)
     rt_priority: int = 0  # >0: run the 500 Hz loop under SCHED_FIFO at this priority (Linux, needs CAP_SYS_NICE)
+    serial: str = "20265500001"
 
 
 @dataclass
@@ -137,6 +140,13 @@ class EmulatedController:
         self.events: list[str] = []
         self.stall_until = 0.0
         self.commands_seen = 0
+        # measurement of stops, times in time.monotonic() (CLOCK_MONOTONIC is system-wide on Linux: comparable
+        # across processes): stop commands (stopJ/stopL/servoStop/speedStop, program stops), rests, motion commands
+        self.stop_events: deque[tuple[float, str]] = deque(maxlen=10_000)
+        self.rest_times: deque[float] = deque(maxlen=10_000)
+        self.motion_times: deque[float] = deque(maxlen=200_000)
+        self.motion_cmds = 0  # motion commands received (moveJ/moveL/path/speedJ/servoJ)
+        self._was_moving = False
 
     # ------------------------------------------------------------------ state read by the RTDE publisher
     @property
@@ -253,8 +263,28 @@ class EmulatedController:
         log.info("ur_rtde control script started (banner %s, %d path entries)", banner, len(path))
 
     # ------------------------------------------------------------------ faults and dashboard actions
+    def _stop_arrived(self, name: str) -> None:
+        self.stop_events.append((time.monotonic(), name))
+
+    def stops_since(self, t: float) -> dict[str, Any]:
+        """For a fault at time.monotonic() `t`: the first stop command after it, the first rest after that stop,
+        and the motion commands received after that stop (and after `t`)."""
+        with self.lock:
+            stop = next(((ts, n) for ts, n in self.stop_events if ts >= t), None)
+            t_stop = stop[0] if stop is not None else float("inf")
+            rest = next((ts for ts in self.rest_times if ts >= t_stop), None)
+            return {
+                "stop_t": -1.0 if stop is None else stop[0],
+                "stop": "-" if stop is None else stop[1].split(" ")[0],
+                "rest_t": -1.0 if rest is None else rest,
+                "motion_after_stop": sum(1 for ts in self.motion_times if ts > t_stop),
+                "motion_after_t": sum(1 for ts in self.motion_times if ts > t),
+                "moving": self.arm.moving,
+            }
+
     def stop_program(self, reason: str) -> None:
         with self.lock:
+            self._stop_arrived(f"program stop ({reason})")
             if self.program is not None:
                 log.info("program stopped: %s", reason)
                 self.events.append(f"program stopped: {reason}")
@@ -327,6 +357,10 @@ class EmulatedController:
             self.arm.dt = self.options.period_s
             if self.arm.fault and self.safety_mode == SAFETY_NORMAL:
                 self.protective_stop(f"motion fault: {self.arm.fault}")
+            moving = self.arm.moving
+            if self._was_moving and not moving:
+                self.rest_times.append(time.monotonic())
+            self._was_moving = moving
             prog = self.program
             if prog is not None:
                 if prog.waiting_done and not self.arm.moving:
@@ -369,6 +403,11 @@ class EmulatedController:
         off = prog.reg_offset
         is_async = self.in_int[off + 1] == 1
         done = True
+        if cmd in (1, 2, 3, 4, 9, 11, 45):
+            self.motion_cmds += 1
+            self.motion_times.append(time.monotonic())
+        elif cmd in (15, 16, 33, 34):
+            self._stop_arrived(CMD_NAMES[cmd])
         if cmd in (1, 2, 3, 4):
             target = self._d(prog, 0, 6)
             speed, accel = self.in_double[off + 6], self.in_double[off + 7]
@@ -415,7 +454,10 @@ class EmulatedController:
             else:
                 self.arm.start(ServoControl(q, servo_time))
         elif cmd in (15, 16):
-            decel = 10.0 if cmd == 15 else 4.0
+            # speedStop(a): joint deceleration, rad/s^2; servoStop(a): tool deceleration, m/s^2 (ur_rtde default 10),
+            # turned into a joint deceleration as for stopL
+            a = self.in_double[off + 0]
+            decel = (a if a > 0 else 10.0) if cmd == 15 else max((a if a > 0 else 10.0) * 2.0, 1.0)
             if isinstance(self.arm.motion, (SpeedControl, ServoControl)):
                 self.arm.stop(decel)
         elif cmd in (33, 34):

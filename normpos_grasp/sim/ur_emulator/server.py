@@ -385,7 +385,7 @@ class UREmulator:
             v = self.options.control_version
             return f"URSoftware {v[0]}.{v[1]}.{v[2]}.{v[3]} (Nov 23 2026)", False
         if cmd == "get serial number":
-            return "20265500001", False
+            return self.options.serial, False
         if cmd == "is in remote control":
             return "true", False
         if cmd == "get robot model":
@@ -440,12 +440,12 @@ class UREmulator:
 
     def _emu(self, args: list[str]) -> str:
         """Fault-injection verbs: protective_stop, estop, release_estop, drop [refuse_s], stall S,
-        unlock_delay S, set_input BIT 0|1, state."""
+        unlock_delay S, set_input BIT 0|1, state, since T (stops after time.monotonic() T, for measurements)."""
         c = self.controller
         if not args:
             return (
                 "emu: verbs are protective_stop, estop, release_estop, drop [refuse_s], stall S, unlock_delay S, "
-                "set_input BIT 0|1, state"
+                "set_input BIT 0|1, state, since T"
             )
         verb = args[0].lower()
         try:
@@ -472,8 +472,11 @@ class UREmulator:
                         f"emu state pid={os.getpid()} q=[{q}] robot_mode={c.robot_mode} safety_mode={c.safety_mode} "
                         f"program={'running' if c.program else 'stopped'} moving={c.arm.moving} "
                         f"commands={c.commands_seen} refused_scripts={len(c.refused_scripts)} "
-                        f"overruns={self.overruns} dout={c.digital_out}"
+                        f"overruns={self.overruns} dout={c.digital_out} motion_cmds={c.motion_cmds}"
                     )
+            elif verb == "since":
+                info = c.stops_since(float(args[1]))
+                return "emu since " + " ".join(f"{k}={v}" for k, v in info.items())
             else:
                 return f"emu: unknown verb {verb!r}"
         except (IndexError, ValueError) as exc:

@@ -1,0 +1,68 @@
+"""Fault and interrupt campaign (issue 18): the CLI (and a library script for moveL) as a subprocess, the real
+ur_rtde client (in SupervisedRtdeDriver's child), the loopback controller in its own process.
+
+Cases: SIGINT / SIGTERM during moveJ, moveL and the servoJ stream; a ur10e plan on a ur5e controller; a gripper
+output out of range (--close-output 99); the controller killed (SIGKILL) mid-moveJ; every RTDE link dropped
+mid-moveJ (`emu drop`); a permanent stall mid-moveJ (`emu stall 60`). Per run the campaign
+(normpos_grasp.sim.ur_emulator.campaign) measures on the controller the first stop command's arrival and the arm at
+rest (`emu since`, time.monotonic() of the controller process: one clock with this process on Linux), the motion
+commands after the stop (or during a refused run), the joint state over RTDE for 0.6 s after a signal, and the
+process's exit code, stderr lines and exit time.
+
+Columns: aborts / hangs of the calling process; exit codes seen (expected); stop cmd, at rest (controller), still
+(RTDE: |qd| < 1e-3 rad/s and q constant after): median/worst ms after the fault; exit: fault -> process gone, ms;
+moved: max joint travel after the signal (rad); cmds: motion commands after the stop (refusals: during the run);
+1-line: runs with exactly one error line and no traceback; bad: runs with any problem.
+
+    .venv/bin/python benchmarks/bench_faults.py [--runs 5] [--cases sigint_movej,...] [--host 127.0.0.61] [--json F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+from normpos_grasp.sim.ur_emulator.campaign import CASES, Campaign, summarize
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument("--host", default="127.0.0.61")
+    ap.add_argument("--json", type=Path, default=None, help="write every run's record here")
+    args = ap.parse_args()
+    cases = [c for c in args.cases.split(",") if c]
+    results = []
+    t0 = time.monotonic()
+    with tempfile.TemporaryDirectory() as tmp, Campaign(args.host, Path(tmp)) as campaign:
+        for _ in range(args.runs):
+            for case in cases:
+                r = campaign.run(case)
+                results.append(r)
+                flag = "ok" if not r.problems() else "; ".join(r.problems())
+                print(f"  {case:18s} exit {r.exit_code}  rest {r.rest_s}  {flag}", flush=True)
+    table = summarize(results)
+    print(f"\n{len(results)} runs in {time.monotonic() - t0:.0f} s")
+    head = (
+        f"{'case':18s} {'runs':>4s} {'abort':>5s} {'hang':>4s} {'exit (exp)':>12s} {'stop cmd':>9s} {'at rest':>9s} "
+        f"{'still':>9s} {'exit ms':>11s} {'moved':>6s} {'cmds':>4s} {'1-line':>6s} {'bad':>3s}"
+    )
+    print(head)
+    for case, row in table.items():
+        codes = ",".join(str(c) for c in row["exit_codes"]) + f" ({row['expected_exit']})"
+        print(
+            f"{case:18s} {row['runs']:4d} {row['aborts']:5d} {row['hangs']:4d} {codes:>12s} "
+            f"{row['stop_cmd_ms']:>9s} {row['rest_ms']:>9s} {row['rtde_still_ms']:>9s} {row['exit_ms']:>11s} "
+            f"{row['moved_rad_max']:6.3f} {row['cmds_after_stop']:4d} {row['one_error_line'] - row['tracebacks']:6d} "
+            f"{row['problem_runs']:3d}"
+        )
+    if args.json is not None:
+        args.json.write_text(json.dumps([r.to_dict() for r in results], indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()

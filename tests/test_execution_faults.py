@@ -1,0 +1,178 @@
+"""Every way out stops the arm; faults become one typed line, never an abort or a hang (issue 18).
+
+The CLI (`normpos-grasp execute ... --execute`, and a library script for moveL) runs as a subprocess with the real
+ur_rtde client (in SupervisedRtdeDriver's child process) against the loopback controller in its own process.
+`Campaign` (normpos_grasp.sim.ur_emulator.campaign) injects the fault mid-move and measures on the controller: the
+stop command's arrival, the arm at rest, motion commands after the stop, and for signals the joint state read over
+RTDE (ur_rtde's RTDEReceiveInterface) for 0.6 s after the signal. Timing bounds are loose (a loaded 2-core machine);
+benchmarks/bench_faults.py reports the figures.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_control")
+
+from normpos_grasp.errors import ControllerMismatch, InputError, SafetyViolation
+from normpos_grasp.execution import GripperIO, SafetyLimits, SimDriver, execute_plan
+from normpos_grasp.execution.rtde_driver import check_controller
+from normpos_grasp.sim.ur_emulator import EmulatorProcess
+from normpos_grasp.sim.ur_emulator.campaign import Campaign, CaseResult, write_plan
+
+HOST = f"127.{100 + os.getpid() % 100}.{os.getpid() // 100 % 250 + 1}.21"
+HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+SLACK_S = 0.25  # s: the issue asks 0.1 s; the bound here leaves room for a loaded CI machine
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Campaign]:
+    with Campaign(HOST, tmp_path_factory.mktemp("faults")) as c:
+        yield c
+
+
+def _assert_clean_exit(r: CaseResult) -> None:
+    assert not r.hung and not r.aborted, r.to_dict()
+    assert r.exit_code == r.expected_exit, r.to_dict()
+    assert not r.traceback and len(r.error_lines) == 1, r.stderr
+    assert r.exit_after_fault_s is not None and r.exit_after_fault_s < 60.0  # includes the CLI start (imports)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["sigint_movej", "sigterm_movej", "sigint_movel", "sigterm_movel"])
+def test_signal_mid_move_stops_the_arm_before_disconnecting(campaign: Campaign, case: str) -> None:
+    r = campaign.run(case)
+    _assert_clean_exit(r)
+    assert r.stop_cmd in ("stopJ", "stopL"), r.to_dict()  # a stop command, not just a disconnect
+    assert r.stop_cmd_s is not None and r.stop_cmd_s < SLACK_S
+    assert r.rest_s is not None and r.rest_s < SLACK_S, r.to_dict()
+    # RTDE: still (qd ~ 0, q constant) soon after the signal, and for the rest of the 0.6 s window
+    assert r.rtde_still_s is not None and r.rtde_still_s < SLACK_S + 0.05, r.to_dict()
+    assert r.drift_after_still_rad is not None and r.drift_after_still_rad < 1e-4
+    assert r.moved_after_fault_rad is not None and r.moved_after_fault_rad < 0.1  # issue 18 measured 1.18 rad
+    assert r.motion_after_stop == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["sigint_stream", "sigterm_stream"])
+def test_signal_mid_stream_stops_the_arm(campaign: Campaign, case: str) -> None:
+    r = campaign.run(case)
+    _assert_clean_exit(r)
+    assert r.stop_cmd in ("servoStop", "stopJ"), r.to_dict()
+    assert r.rest_s is not None and r.rest_s < SLACK_S, r.to_dict()
+    assert r.rtde_still_s is not None and r.rtde_still_s < SLACK_S + 0.05
+    assert r.motion_after_stop == 0  # no servoJ sample after the stop
+
+
+@pytest.mark.slow
+def test_plan_for_another_robot_is_refused_and_nothing_moves(campaign: Campaign) -> None:
+    r = campaign.run("model_mismatch")  # a ur10e plan on a ur5e controller
+    _assert_clean_exit(r)
+    assert "UR5" in r.error_lines[0] and "ur10e" in r.error_lines[0]
+    assert r.motion_cmds_in_run == 0 and r.moved_after_fault_rad == 0.0
+
+
+@pytest.mark.slow
+def test_bad_gripper_output_refused_before_any_motion(campaign: Campaign) -> None:
+    r = campaign.run("bad_io")  # --close-output 99
+    _assert_clean_exit(r)
+    assert "close_output = 99" in r.error_lines[0]
+    assert r.motion_cmds_in_run == 0 and r.moved_after_fault_rad == 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["link_drop", "stall", "killed_controller"])
+def test_link_faults_become_one_typed_line(campaign: Campaign, case: str) -> None:
+    r = campaign.run(case)
+    _assert_clean_exit(r)  # exit 2 within seconds: no SIGABRT from ur_rtde, no hang
+    assert "link" in r.error_lines[0] or "state" in r.error_lines[0] or "ur_rtde" in r.error_lines[0]
+    if case != "killed_controller":
+        assert r.rest_s is not None and r.rest_s < r.stop_budget_s + SLACK_S, r.to_dict()
+        assert r.motion_after_stop == 0
+
+
+# ---------------------------------------------------------------------- in-process checks (no subprocess CLI)
+def test_controller_identity_checked_against_the_model(tmp_path: Path) -> None:
+    host = HOST.rsplit(".", 1)[0] + ".22"
+    with EmulatorProcess(
+        host, "ur5e", ready_timeout_s=60.0, log_path=tmp_path / "emu.log", extra_args=("--serial", "S42")
+    ):
+        ident = check_controller(host, "ur5e", "S42")
+        assert ident.model == "UR5" and ident.software_major >= 5
+        with pytest.raises(ControllerMismatch, match="ur10e"):
+            check_controller(host, "ur10e")
+        with pytest.raises(ControllerMismatch, match="serial"):
+            check_controller(host, "ur5e", "S43")
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"close_output": 99},
+        {"close_output": -1},
+        {"close_output": 16},
+        {"close_output": 2, "tool": True},
+        {"open_output": 0, "close_output": 0},
+        {"grip_detect_input": 18},
+    ],
+)
+def test_gripper_io_out_of_range_refused(kwargs: dict[str, object]) -> None:
+    with pytest.raises(InputError):
+        GripperIO(**kwargs)  # type: ignore[arg-type]
+
+
+def test_gripper_io_in_range_accepted() -> None:
+    GripperIO(close_output=15, open_output=8, grip_detect_input=17)
+    GripperIO(close_output=1, open_output=0, tool=True)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"max_joint_accel": 1e9}, {"max_joint_accel": 40.01}, {"max_joint_accel": float("nan")}, {"max_tool_speed": 5.0}],
+)
+def test_caps_above_the_ceilings_refused(kwargs: dict[str, float]) -> None:
+    with pytest.raises(SafetyViolation):
+        SafetyLimits.for_model("ur5e", **kwargs)  # type: ignore[arg-type]
+
+
+def test_cell_caps_above_rated_refused() -> None:
+    from dataclasses import replace
+
+    base = SafetyLimits.for_model("ur5e")
+    with pytest.raises(SafetyViolation, match="max_joint_accel"):
+        replace(base, max_joint_accel=np.full(6, 100000.0))
+    with pytest.raises(SafetyViolation, match="rated"):
+        replace(base, max_joint_speed=np.full(6, 4.0))
+
+
+def test_plan_whose_samples_exceed_the_caps_refused(tmp_path: Path) -> None:
+    import json
+
+    q1 = HOME + np.array([0.3, 0, 0, 0, 0, 0])
+    plan = json.loads(write_plan(tmp_path / "p.json", "ur5e", HOME, q1, 0.25).read_text())  # peak 23.7 rad/s^2
+    with pytest.raises(SafetyViolation, match="acceleration"):
+        execute_plan(None, plan, SafetyLimits.for_model("ur5e", max_joint_accel=4.0))  # dry run: nothing sent
+
+
+def test_missed_grip_stops_the_pick(tmp_path: Path) -> None:
+    import json
+
+    q_grasp = HOME + np.array([0.2, 0, 0, 0, 0, 0])
+    plan = json.loads(write_plan(tmp_path / "p.json", "ur5e", HOME, q_grasp, None).read_text())
+    plan["joint_waypoints"][1]["name"] = "grasp"
+    plan["joint_waypoints"].append({"name": "place", "q": (HOME - 0.2 * np.eye(6)[0]).tolist()})
+    lim = SafetyLimits.for_model("ur5e")
+    drv = SimDriver(lim, GripperIO(close_output=0, open_output=1, grip_detect_input=2, settle_s=0.05), q_home=HOME)
+    drv.connect()
+    try:
+        report = execute_plan(drv, plan, lim, dry_run=False)
+        assert report.status == "grip_failed" and report.grip_detected is False
+        assert np.max(np.abs(drv.state().q - q_grasp)) < 1e-3  # stopped at the grasp: never went on to the place
+    finally:
+        drv.disconnect()
+        drv.shutdown()
