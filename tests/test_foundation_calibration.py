@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -363,3 +365,24 @@ def test_calibrate_cli_refuses_without_writing(tmp_path: Path, capsys: pytest.Ca
     assert not (tmp_path / "a.json").exists()
     assert main([*base, "--points", str(tmp_path / "good.csv"), "--out", str(tmp_path / "a.json")]) == 0
     assert Camera.load_json(tmp_path / "a.json").world_from_camera is not None
+
+
+def test_static_reference_json_is_validated(tmp_path: Path) -> None:
+    wfc = look_at([0.2, 0.15, 1.0], [0.2, 0.15, 0.0], up=(0, 1, 0))
+    world = np.array([[0.06, 0.05, 0], [0.2, 0.04, 0], [0.33, 0.06, 0], [0.05, 0.24, 0]])
+    uv = CAM.project(transform_points(invert_pose(wfc), world))
+    good = StaticReference(tuple("ABCD"), world, uv, wfc).to_dict()
+    zero = wfc.copy()
+    zero[:3, :3] = 0.0
+    path = tmp_path / "ref.json"
+    for data, phrase in [
+        ([], "must be a JSON object"),
+        ({**good, "names": "ABCD"}, "names must be a list of text"),
+        ({**good, "world_m": [[0, 0]] * 4}, "world_m: expected shape (N, 3)"),
+        ({**good, "world_from_camera": zero.tolist()}, "not a rotation"),
+        ({**good, "patches": [[[300]]] * 4}, "8-bit gray"),
+        ({k: v for k, v in good.items() if k != "pixels"}, "lacks the key 'pixels'"),
+    ]:
+        path.write_text(json.dumps(data))
+        with pytest.raises(InputError, match=re.escape(phrase)):
+            StaticReference.load_json(path)

@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.camera.calibration import ControlPoints, ExtrinsicsOptions, calibrate_extrinsics
-from normpos_grasp.camera.model import Camera, RGBDFrame
+from normpos_grasp.camera.model import Camera, RGBDFrame, check_world_from_camera
 from normpos_grasp.errors import CalibrationError, CameraMoved, InputError
 from normpos_grasp.geometry.transforms import rotation_angle, transform_points
 from normpos_grasp.typing import ArrayLike, FloatArray, UInt8Array
-from normpos_grasp.validation import as_float_array, check_pose
+from normpos_grasp.validation import as_float_array
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class StaticReference:
             raise InputError(f"need >= 4 points with one name each, got {len(w)} points, {len(self.names)} names")
         object.__setattr__(self, "world", w)
         object.__setattr__(self, "pixels", p)
-        object.__setattr__(self, "world_from_camera", check_pose(self.world_from_camera, "world_from_camera"))
+        object.__setattr__(self, "world_from_camera", check_world_from_camera(self.world_from_camera))
         if self.patches is not None and (self.patches.ndim != 3 or len(self.patches) != len(w)):
             raise InputError(f"patches must be (N, 2r+1, 2r+1) for N = {len(w)}, got {self.patches.shape}")
 
@@ -101,18 +101,29 @@ class StaticReference:
         return out
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> StaticReference:
-        try:
-            patches = data.get("patches")
-            return cls(
-                tuple(data["names"]),
-                np.asarray(data["world_m"], dtype=np.float64),
-                np.asarray(data["pixels"], dtype=np.float64),
-                np.asarray(data["world_from_camera"], dtype=np.float64),
-                None if patches is None else np.asarray(patches, dtype=np.uint8),
-            )
-        except KeyError as exc:
-            raise InputError(f"static reference lacks the key {exc.args[0]!r}") from exc
+    def from_dict(cls, data: Any) -> StaticReference:
+        """Inverse of `to_dict`; raises InputError naming a missing or malformed key."""
+        if not isinstance(data, dict):
+            raise InputError(f"a static reference must be a JSON object, got {type(data).__name__}")
+        missing = [k for k in ("names", "world_m", "pixels", "world_from_camera") if k not in data]
+        if missing:
+            raise InputError(f"static reference lacks the key {missing[0]!r}")
+        names = data["names"]
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise InputError(f"static reference names must be a list of text, got {type(names).__name__}")
+        patches = data.get("patches")
+        if patches is not None:
+            arr = as_float_array(patches, "patches", (None, None, None))
+            if np.any((arr < 0) | (arr > 255) | (arr != np.round(arr))):
+                raise InputError("static reference patches must hold 8-bit gray values 0..255")
+            patches = arr.astype(np.uint8)
+        return cls(
+            tuple(names),
+            as_float_array(data["world_m"], "world_m", (None, 3)),
+            as_float_array(data["pixels"], "pixels", (None, 2)),
+            as_float_array(data["world_from_camera"], "world_from_camera", (4, 4)),
+            patches,
+        )
 
     def save_json(self, path: str | Path) -> None:
         target = Path(path)
@@ -123,9 +134,13 @@ class StaticReference:
     @classmethod
     def load_json(cls, path: str | Path) -> StaticReference:
         try:
-            return cls.from_dict(json.loads(Path(path).read_text()))
-        except (OSError, json.JSONDecodeError) as exc:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
             raise InputError(f"cannot read static reference {path}: {exc}") from exc
+        try:
+            return cls.from_dict(data)
+        except InputError as exc:
+            raise InputError(f"static reference {path}: {exc}") from exc
 
 
 @dataclass(frozen=True, eq=False)
