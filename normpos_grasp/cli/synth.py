@@ -76,11 +76,13 @@ def run(args: argparse.Namespace) -> int:
     if staging.exists():  # left by an interrupted run: never complete, never read
         shutil.rmtree(staging)
     total = args.scenes * args.frames
-    bar = tqdm(total=total, unit="frame", desc="synth", disable=args.no_progress)
+    bars: list[Any] = []  # the bar appears with the first finished frame: input errors print only their line
     state = {"done": 0}
 
     def progress(done: int, _total: int) -> None:
-        bar.update(done - state["done"])
+        if not bars:
+            bars.append(tqdm(total=total, unit="frame", desc="synth", disable=args.no_progress))
+        bars[0].update(done - state["done"])
         state["done"] = done
 
     start = time.perf_counter()
@@ -103,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
             shutil.rmtree(staging)
         raise
     finally:
-        bar.close()
+        for bar in bars:
+            bar.close()
     elapsed = time.perf_counter() - start
     print(f"wrote {total} frames ({args.scenes} scenes) to {out / split.name} in {elapsed:.1f} s")
     return 0
