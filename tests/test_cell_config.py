@@ -125,6 +125,12 @@ BAD: list[tuple[str, Callable[[dict[str, Any]], None], str, str]] = [
         "camera.world_from_camera[0][3]",
         "millimetres",
     ),
+    (
+        "camera inside the workspace",
+        _set("motion.workspace.max", [0.9, 0.9, 1.2]),
+        "camera.world_from_camera",
+        "inside motion.workspace",
+    ),
     ("base under floor_z", _set("floor_z", 0.5), "robot.world_from_base", "floor_z"),
     ("floor_z text", _set("floor_z", "low"), "floor_z", "number"),
     ("name mapping", _set("name", {"a": 1}), "name", "text"),
@@ -182,7 +188,14 @@ def test_check_camera_against_the_cell() -> None:
     assert info.value.measured == pytest.approx(-0.3)
     above = below.copy()
     above[2, 3] = 1.2
-    assert np.allclose(cell.check_camera(above), above)
+    assert np.allclose(cell.check_camera(above), above)  # above the workspace (max z 0.9)
+    inside = below.copy()
+    inside[2, 3] = 0.6
+    with pytest.raises(ExtrinsicsError, match="inside motion.workspace"):
+        cell.check_camera(inside)
+    data = _cell()
+    del data["motion"]["workspace"]  # no workspace given: the default box does not judge cameras
+    assert np.allclose(cell_from_dict(data).check_camera(inside), inside)
 
 
 def test_example_cells_are_valid() -> None:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.camera.model import ROTATION_TOL, check_rotation, check_world_from_camera
-from normpos_grasp.errors import CellConfigError, InputError, NormposError
+from normpos_grasp.errors import CellConfigError, ExtrinsicsError, InputError, NormposError
 from normpos_grasp.io.yaml_safe import load_yaml_file
 from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.ur_params import JOINT_NAMES, UR_PARAMS
@@ -131,7 +131,7 @@ class MotionLimits:
     """Caps for planned motion: joint_velocity (6,) rad/s (each within the robot's rated joint speed),
     joint_acceleration (6,) rad/s^2 (each within `MAX_JOINT_ACCELERATION`), tcp_speed_m_s and
     tcp_acceleration_m_s2 for Cartesian segments (within `MAX_TCP_SPEED`, `MAX_TCP_ACCELERATION`), workspace box
-    (min (3,), max (3,)) the TCP must stay in, m."""
+    (min (3,), max (3,)) the TCP must stay in, m; workspace_given: the file set it (else a +-5 m default box)."""
 
     joint_velocity: FloatArray
     joint_acceleration: FloatArray
@@ -139,6 +139,7 @@ class MotionLimits:
     workspace_min: FloatArray
     workspace_max: FloatArray
     tcp_acceleration_m_s2: float = 2.0
+    workspace_given: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,9 +181,12 @@ class CellConfig:
         return _camera_floor(self.floor_z, self.static_boxes, self.bin)
 
     def check_camera(self, world_from_camera: Any, name: str = "world_from_camera") -> FloatArray:
-        """Validate extrinsics against this cell (camera.model.check_world_from_camera with `camera_floor_z`);
-        for cameras that come from a dataset (`camera: {from_scene: true}`). Raises ExtrinsicsError."""
-        return check_world_from_camera(world_from_camera, name, floor_z_m=self.camera_floor_z)
+        """Validate extrinsics against this cell (camera.model.check_world_from_camera with `camera_floor_z`, and
+        a camera strictly inside a given `motion.workspace` refused); for cameras that come from a dataset
+        (`camera: {from_scene: true}`). Raises ExtrinsicsError."""
+        pose = check_world_from_camera(world_from_camera, name, floor_z_m=self.camera_floor_z)
+        _check_outside_workspace(pose, self.motion, name)
+        return pose
 
 
 def load_cell(path: str | Path) -> CellConfig:
@@ -467,7 +471,19 @@ def _motion(v: Any, model: str) -> MotionLimits:
     ws_max = _lengths(_req(ws, "max", "motion.workspace"), "motion.workspace.max", 3)
     if np.any(ws_min >= ws_max):
         raise _err("motion.workspace", f"min {ws_min.tolist()} must be below max {ws_max.tolist()}")
-    return MotionLimits(vel, acc, tcp_speed, ws_min, ws_max, tcp_acc)
+    return MotionLimits(vel, acc, tcp_speed, ws_min, ws_max, tcp_acc, "workspace" in d)
+
+
+def _check_outside_workspace(world_from_camera: FloatArray, motion: MotionLimits, name: str) -> None:
+    """A camera strictly inside the box the TCP may move in could be driven into: refuse it (ExtrinsicsError)."""
+    pos = world_from_camera[:3, 3]
+    if motion.workspace_given and np.all(pos > motion.workspace_min) and np.all(pos < motion.workspace_max):
+        raise ExtrinsicsError(
+            f"{name}: the camera at {np.round(pos, 3).tolist()} m is inside motion.workspace "
+            f"(min {motion.workspace_min.tolist()}, max {motion.workspace_max.tolist()}), where the arm may be "
+            "planned into it; shrink the workspace below or beside the camera, or check the extrinsics",
+            float(np.min(np.minimum(pos - motion.workspace_min, motion.workspace_max - pos))),
+        )
 
 
 def _camera_floor(floor_z: float | None, boxes: Iterable[BoxSpec], bin_spec: BinSpec | None) -> float | None:
@@ -527,6 +543,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     if len(set(names)) != len(names):
         raise _err("fixtures", f"box names must be unique, got {names}")
 
+    limits = _motion(data.get("motion", {}), model)
     world_from_camera = None
     if "camera" in data:
         camera = _mapping(data["camera"], "camera", _CAMERA_KEYS)
@@ -541,6 +558,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
                 world_from_camera = check_world_from_camera(
                     pose, "camera.world_from_camera", floor_z_m=_camera_floor(floor_z, boxes, bin_spec)
                 )
+                _check_outside_workspace(world_from_camera, limits, "camera.world_from_camera")
             except InputError as exc:
                 raise CellConfigError(str(exc)) from exc
         elif not from_scene:
@@ -567,7 +585,6 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     if "templates" in data:
         templates_path = (Path(base_dir) / _text(data["templates"], "templates", 4096)).resolve()
 
-    limits = _motion(data.get("motion", {}), model)
     planning = _mapping(data.get("planning", {}), "planning", _PLANNING_KEYS)
     return CellConfig(
         name=_text(data["name"], "name") if "name" in data else (source.stem if source else "cell"),
