@@ -147,15 +147,18 @@ def test_configs_clear_is_conservative(bin_cell: CellConfig) -> None:
     rng = np.random.default_rng(3)
     home = np.asarray(bin_cell.home_q)
     qs = home + rng.uniform(-1.2, 1.2, size=(300, 6))
-    for held in (False, True):
-        if held:
-            world.disable(targets[0].name)
-            world.attach(targets[0].name, targets[0].mesh, make_pose(None, [0.0, 0.0, 0.01]))  # type: ignore[arg-type]
+
+    def bound_is_sound() -> None:
         clear = world.configs_clear(qs, 0.05)
         exact = np.array([world.check_config(q, 0.05) is None for q in qs])
         assert not np.any(clear & ~exact)
         assert clear.any() and (~exact).any()
-    world.detach()
+
+    bound_is_sound()
+    with world.holding(targets[0].name, targets[0].mesh, make_pose(None, [0.0, 0.0, 0.01])):  # type: ignore[arg-type]
+        assert world.held_name == targets[0].name and not world.is_enabled(targets[0].name)
+        bound_is_sound()
+    assert world.held_name == "" and world.is_enabled(targets[0].name)
 
 
 def test_symmetric_part_next_to_a_wall_closes_along_it(bin_cell: CellConfig) -> None:

@@ -1,4 +1,4 @@
-"""CollisionWorld: categories, enable/disable, clutter voxels, arm self-collision, tool opening; cell YAML loading."""
+"""CollisionWorld: categories, scoped without/holding, clutter voxels, arm self-collision, tool opening; cell YAML loading."""
 
 from __future__ import annotations
 
@@ -40,10 +40,20 @@ def test_tool_hits_by_category_and_disable() -> None:
     assert world.check_tool(grasp, 0.06) is None
     hit = world.check_tool(grasp, 0.02)
     assert hit is not None and hit.reason == "collision_object"
-    world.disable("object/0")
-    assert world.check_tool(grasp, 0.02) is None
-    world.enable("object/0")
+    with world.without("object/0"):
+        assert world.check_tool(grasp, 0.02) is None
+        with world.without("object/0", "no such element"):  # nested, unknown names ignored
+            assert world.check_tool(grasp, 0.02) is None
+        assert not world.is_enabled("object/0")
     assert world.check_tool(grasp, 0.02) is not None
+    # the scope is restored when the block raises
+    with pytest.raises(RuntimeError), world.without("object/0"):
+        raise RuntimeError("planner failed")
+    assert world.is_enabled("object/0") and world.check_tool(grasp, 0.02) is not None
+    # a moved element is queried where it now is (the cached broad phase is rebuilt)
+    world.move("object/0", make_pose(None, [0.6, 0.0, 0.02]))
+    assert world.check_tool(grasp, 0.02) is None
+    assert world.check_tool(make_pose(DOWN, [0.6, 0.0, 0.03]), 0.02) is not None
 
 
 def test_unexplained_points_become_clutter_voxels() -> None:

@@ -6,22 +6,23 @@ templates), 'clutter' (measured points that no accepted fit explains: voxel boxe
 ignored). The arm (`ArmModel`, links posed from FK), the tool at a given opening and a held object are the moving
 parts. Collision queries stop at the first contact (early-exit callback); distance queries are offered for reports
 but cost 15-100x a collision test, so the planner checks clearances with inflated shapes instead.
-Call `update()` after moving world objects (the planner does when it changes the target).
+Scoped state changes (`without`, `holding`, `empty_handed`) restore what was there on exit.
 """
 
 from __future__ import annotations
 
 import logging
 import weakref
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import fcl
 import numpy as np
 
 from normpos_grasp.errors import InputError
-from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray
+from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, IntArray
 
 if TYPE_CHECKING:
     import trimesh
@@ -164,6 +165,13 @@ def _grown_tool(tool: ToolModel, by_m: float) -> list[tuple[fcl.CollisionObject,
     return out
 
 
+def _manager(objects: list[fcl.CollisionObject]) -> fcl.DynamicAABBTreeCollisionManager:
+    mgr = fcl.DynamicAABBTreeCollisionManager()
+    mgr.registerObjects(objects)
+    mgr.setup()
+    return mgr
+
+
 def bounding_radius(kind: str, size: Any) -> float:
     """Radius of the sphere about a primitive's centre that encloses it, m."""
     v = [float(x) for x in size]
@@ -176,46 +184,73 @@ def bounding_radius(kind: str, size: Any) -> float:
     return v[0]
 
 
-@dataclass
+@dataclass(frozen=True)
+class _ToolShapes:
+    """One copy of the tool's shapes as fcl objects: exact, or grown by a clearance or a noise margin."""
+
+    objects: tuple[fcl.CollisionObject, ...]
+    tcp_from_shape: FloatArray  # (S, 4, 4) at zero opening
+    radii: FloatArray  # (S,) bounding-sphere radii about each shape's centre, m
+
+
+@dataclass(frozen=True)
+class _ArmShapes:
+    """The arm's link shapes as fcl objects, their bounding radii (m), the link pairs checked for self-collision
+    and the links (base, shoulder, upper arm) that the tool and the held object are checked against."""
+
+    objects: tuple[fcl.CollisionObject, ...]
+    radii: FloatArray
+    pair_mask: BoolArray  # (S, S): non-adjacent pairs on different joints
+    low_links: IntArray
+
+
+@dataclass(frozen=True)
+class _Held:
+    """The object held rigidly in the tool: its fcl object, pose in the TCP frame and radius about its origin (m)."""
+
+    name: str
+    obj: fcl.CollisionObject
+    tcp_from_object: FloatArray
+    radius: float
+
+
+@dataclass(frozen=True)
+class _BroadPhase:
+    """The broad-phase managers of one set of enabled elements: one per category and one over everything, plus
+    every enabled element's AABB (lo, hi: (E, 3) m) for the numpy pre-tests."""
+
+    managers: dict[str, fcl.DynamicAABBTreeCollisionManager]
+    everything: fcl.DynamicAABBTreeCollisionManager | None
+    lo: FloatArray
+    hi: FloatArray
+
+
 class CollisionWorld:
     """Static cell, fitted objects and clutter in broad-phase managers; arm, tool and held object as movers.
 
     Build with `add_box`, `add_mesh`, `add_points`; then `set_arm`, `set_tool`. Query with `check_tool`,
-    `check_arm`, `check_config`. `disable(name)` / `enable(name)` take an element out of the queries (the target
-    object while its own grasp is checked) without rebuilding.
+    `check_arm`, `check_config`, `configs_clear`. State changes are scoped: `with world.without(name):` leaves an
+    element out of the queries (the target while its own grasp is checked), `with world.holding(name, mesh,
+    tcp_from_object):` holds it in the tool and takes it out of the world, `with world.empty_handed():` releases
+    it for the block; each restores the previous state on exit, exceptions included. The broad phase of each set of
+    enabled elements is built once and kept until an element is added, removed or moved.
     """
 
-    elements: dict[str, _Element] = field(default_factory=dict)
-    _managers: dict[str, fcl.DynamicAABBTreeCollisionManager] = field(default_factory=dict)
-    _all: fcl.DynamicAABBTreeCollisionManager | None = None
-    _lo: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
-    _hi: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
-    _bounds_dirty: bool = False
-    _dirty: set[str] = field(default_factory=lambda: set(CATEGORIES))
-    _disabled: set[str] = field(default_factory=set)
-    arm: ArmModel | None = None
-    tool: ToolModel | None = None
-    _arm_objs: list[fcl.CollisionObject] = field(default_factory=list)
-    _tool_objs: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
-    _tool_objs_inflated: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
-    _tool_radii: FloatArray = field(default_factory=lambda: np.zeros(0))
-    _tool_radii_inflated: FloatArray = field(default_factory=lambda: np.zeros(0))
-    _tool_objs_margin: list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]] = field(default_factory=list)
-    _tool_local_margin: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    _tool_radii_margin: FloatArray = field(default_factory=lambda: np.zeros(0))
-    _arm_radii: FloatArray = field(default_factory=lambda: np.zeros(0))
-    _pair_mask: Any = None
-    _low_links: Any = None
-    _tool_centres: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
-    _tool_local: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    _tool_local_inflated: FloatArray = field(default_factory=lambda: np.zeros((0, 4, 4)))
-    _tool_moves: FloatArray = field(default_factory=lambda: np.zeros(0))
-    _tool_finger_half: FloatArray = field(default_factory=lambda: np.zeros(0))
-    _last_opening: float = 0.0
-    _tool_posed_by_config: bool = False
-    _held: tuple[str, fcl.CollisionObject, FloatArray] | None = None
-    _held_radius: float = 0.0
-    n_checks: int = 0
+    def __init__(self) -> None:
+        self.elements: dict[str, _Element] = {}
+        self.arm: ArmModel | None = None
+        self.tool: ToolModel | None = None
+        self.n_checks = 0  # fcl broad-phase queries run (for profiling)
+        self._disabled: frozenset[str] = frozenset()
+        self._phases: dict[frozenset[str], _BroadPhase] = {}
+        self._arm: _ArmShapes | None = None
+        self._tools: dict[str, _ToolShapes] = {}  # 'exact', 'inflated', 'margin'
+        self._tool_moves: FloatArray = np.zeros(0)  # (S,) -1 / 0 / +1: how each shape moves with the opening
+        self._tool_finger_half: FloatArray = np.zeros(0)  # (S,) half thickness of the moving fingers, m
+        self._tool_centres: FloatArray = np.zeros((0, 3))  # where the exact tool was last posed, m
+        self._last_opening = 0.0  # m
+        self._tool_posed_by_config = False
+        self._held: _Held | None = None
 
     # -- building -----------------------------------------------------------------------------------------------
     def add_box(self, name: str, world_from_box: ArrayLike, size: ArrayLike, category: str = "cell") -> None:
@@ -260,16 +295,15 @@ class CollisionWorld:
         self.elements[name] = _Element(
             name, category, obj, geom, np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         )
-        self._dirty.add(category)
+        self._phases.clear()
 
     def remove(self, name: str) -> None:
         """Remove an element by name."""
-        el = self.elements.pop(name, None)
-        if el is not None:
-            self._dirty.add(el.category)
+        if self.elements.pop(name, None) is not None:
+            self._phases.clear()
 
     def move(self, name: str, world_from_element: ArrayLike) -> None:
-        """Move an element; the managers are refreshed at the next query (`update`)."""
+        """Move an element to `world_from_element` (4, 4); the broad phase is rebuilt at the next query."""
         el = self.elements[name]
         pose = np.asarray(world_from_element, dtype=np.float64)
         old = el.obj.getTransform()
@@ -286,106 +320,116 @@ class CollisionWorld:
         )
         el.lo, el.hi = corners.min(axis=0), corners.max(axis=0)
         el.obj.setTransform(_tf(pose))
-        self._bounds_dirty = True
-        mgr = self._managers.get(el.category)
-        if mgr is not None and el.category not in self._dirty and name not in self._disabled:
-            mgr.update(el.obj)
-
-    def disable(self, *names: str) -> None:
-        """Leave the named elements out of queries until `enable`."""
-        new = {n for n in names if n in self.elements} - self._disabled
-        self._disabled |= new
-        self._dirty |= {self.elements[n].category for n in new}
-
-    def enable(self, *names: str) -> None:
-        back = self._disabled & set(names)
-        self._disabled -= back
-        self._dirty |= {self.elements[n].category for n in back if n in self.elements}
+        if el.box is not None:
+            el.box = (pose.copy(), el.box[1])
+        self._phases.clear()
 
     def update(self) -> None:
-        """(Re)build the broad-phase managers of the categories that changed (added, removed, disabled)."""
-        for cat in CATEGORIES:
-            if cat not in self._dirty:
-                continue
-            objs = [e.obj for e in self.elements.values() if e.category == cat and e.name not in self._disabled]
-            self._managers.pop(cat, None)
-            if objs:
-                mgr = fcl.DynamicAABBTreeCollisionManager()
-                mgr.registerObjects(objs)
-                mgr.setup()
-                self._managers[cat] = mgr
-        self._managers = {c: self._managers[c] for c in CATEGORIES if c in self._managers}
+        """Build the broad phase of the enabled elements now (queries otherwise build it when first needed)."""
+        self._phase()
+
+    def _phase(self) -> _BroadPhase:
+        """The broad phase of the elements enabled now, built once per set of disabled names."""
+        phase = self._phases.get(self._disabled)
+        if phase is not None:
+            return phase
         enabled = [e for e in self.elements.values() if e.name not in self._disabled]
-        objs = [e.obj for e in enabled]
-        self._lo = np.array([e.lo for e in enabled]).reshape(-1, 3)
-        self._hi = np.array([e.hi for e in enabled]).reshape(-1, 3)
-        self._bounds_dirty = False
-        self._all = None
-        if objs:
-            self._all = fcl.DynamicAABBTreeCollisionManager()
-            self._all.registerObjects(objs)
-            self._all.setup()
-        self._dirty = set()
+        managers = {}
+        for cat in CATEGORIES:
+            objs = [e.obj for e in enabled if e.category == cat]
+            if objs:
+                managers[cat] = _manager(objs)
+        phase = _BroadPhase(
+            managers,
+            _manager([e.obj for e in enabled]) if enabled else None,
+            np.array([e.lo for e in enabled]).reshape(-1, 3),
+            np.array([e.hi for e in enabled]).reshape(-1, 3),
+        )
+        self._phases[self._disabled] = phase
+        return phase
+
+    # -- scoped state -------------------------------------------------------------------------------------------
+    @contextmanager
+    def without(self, *names: str) -> Iterator[None]:
+        """Leave the named elements (unknown names are ignored) out of every query inside the block."""
+        before = self._disabled
+        self._disabled = before | {n for n in names if n in self.elements}
+        try:
+            yield
+        finally:
+            self._disabled = before
+
+    @contextmanager
+    def holding(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> Iterator[None]:
+        """Inside the block the tool holds `mesh` rigidly at `tcp_from_object` (4, 4) (after a grasp): it moves
+        with the TCP in arm and config queries, and the world element `name` (the object where it lay) is left out."""
+        verts = np.asarray(mesh.vertices, dtype=np.float64)
+        held = _Held(
+            name,
+            fcl.CollisionObject(bvh_for(mesh), fcl.Transform()),
+            np.asarray(tcp_from_object, dtype=np.float64),
+            float(np.linalg.norm(verts, axis=1).max()) if len(verts) else 0.0,  # about the object origin
+        )
+        before = self._held
+        self._held = held
+        try:
+            with self.without(name):
+                yield
+        finally:
+            self._held = before
+
+    @contextmanager
+    def empty_handed(self) -> Iterator[None]:
+        """Inside the block the tool holds nothing (the object stays out of the world if it was held)."""
+        before = self._held
+        self._held = None
+        try:
+            yield
+        finally:
+            self._held = before
+
+    @property
+    def held_name(self) -> str:
+        """Name of the held object, '' when the tool is empty."""
+        return self._held.name if self._held else ""
+
+    def is_enabled(self, name: str) -> bool:
+        """Whether the element `name` exists and takes part in queries now."""
+        return name in self.elements and name not in self._disabled
 
     # -- movers -------------------------------------------------------------------------------------------------
     def set_arm(self, arm: ArmModel) -> None:
         """Use `arm`'s link shapes (capsules, boxes, spheres, cylinders) as moving collision objects."""
-        self.arm = arm
-        self._arm_objs = [fcl.CollisionObject(_geometry(s.kind, s.size), fcl.Transform()) for s in arm.shapes]
-        self._arm_radii = np.array([bounding_radius(s.kind, s.size) for s in arm.shapes])
         n = len(arm.shapes)
         mask = np.zeros((n, n), dtype=bool)
         for i in range(n):
             for j in range(i + 1, n):
                 a, b = sorted((arm.shapes[i].joint, arm.shapes[j].joint))
                 mask[i, j] = a != b and (a, b) not in arm.adjacent
-        self._pair_mask = mask
-        self._low_links = np.array([i for i, s in enumerate(arm.shapes) if s.joint < 3], dtype=np.int64)
+        self.arm = arm
+        self._arm = _ArmShapes(
+            tuple(fcl.CollisionObject(_geometry(s.kind, s.size), fcl.Transform()) for s in arm.shapes),
+            np.array([bounding_radius(s.kind, s.size) for s in arm.shapes]),
+            mask,
+            np.array([i for i, s in enumerate(arm.shapes) if s.joint < 3], dtype=np.int64),
+        )
 
     def set_tool(self, tool: ToolModel, clearance_m: float = 0.01, noise_margin_m: float = 0.002) -> None:
         """Use `tool`'s shapes as moving collision objects; a copy grown by `clearance_m` on every side answers
         clearance questions (`check_tool(..., inflated=True)`) without distance queries, and one grown by
         `noise_margin_m` keeps the tool that far from neighbours despite fitted-pose noise
         (`check_tool(..., margin=True)`). Jaw fingers grow outwards only (their inner faces stay put)."""
+        radii = np.array([bounding_radius(s.kind, s.size) for s in tool.shapes])
         self.tool = tool
-        self._tool_objs = []
-        for s in tool.shapes:
-            size = np.asarray(s.size, dtype=np.float64)
-            self._tool_objs.append(
-                (
-                    fcl.CollisionObject(_geometry(s.kind, size), fcl.Transform()),
-                    np.array(s.tcp_from_shape, dtype=np.float64),
-                    size,
-                    s.moves,
-                )
+        self._tools = {
+            variant: _ToolShapes(
+                tuple(o for o, *_ in grown), np.stack([g[1] for g in grown]), radii + np.sqrt(3) * by_m
             )
-        self._tool_objs_inflated = _grown_tool(tool, clearance_m)
-        self._tool_objs_margin = _grown_tool(tool, noise_margin_m)
-        self._tool_radii = np.array([bounding_radius(s.kind, s.size) for s in tool.shapes])
-        self._tool_local = np.stack([o[1] for o in self._tool_objs])
-        self._tool_local_inflated = np.stack([o[1] for o in self._tool_objs_inflated])
-        self._tool_local_margin = np.stack([o[1] for o in self._tool_objs_margin])
+            for variant, by_m in (("exact", 0.0), ("inflated", clearance_m), ("margin", noise_margin_m))
+            for grown in [_grown_tool(tool, by_m)]
+        }
         self._tool_moves = np.array([float(s.moves) for s in tool.shapes])
         self._tool_finger_half = np.array([s.size[0] / 2.0 if s.moves else 0.0 for s in tool.shapes])
-        self._tool_radii_inflated = self._tool_radii + np.sqrt(3) * clearance_m
-        self._tool_radii_margin = self._tool_radii + np.sqrt(3) * noise_margin_m
-
-    def attach(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> None:
-        """Hold `mesh` rigidly in the tool (after a grasp); it then moves with the TCP in arm queries."""
-        geom = bvh_for(mesh)
-        self._held = (name, fcl.CollisionObject(geom, fcl.Transform()), np.asarray(tcp_from_object, dtype=np.float64))
-        verts = np.asarray(mesh.vertices, dtype=np.float64)
-        centre = (verts.max(axis=0) + verts.min(axis=0)) / 2.0
-        # bounding sphere about the object origin (the fcl object's translation)
-        self._held_radius = float(np.linalg.norm(verts, axis=1).max()) if len(verts) else 0.0
-        del centre
-
-    def detach(self) -> None:
-        self._held = None
-
-    @property
-    def held_name(self) -> str:
-        return self._held[0] if self._held else ""
 
     # -- queries ------------------------------------------------------------------------------------------------
     def tool_box_hits(self, world_from_tcp: FloatArray, opening_m: FloatArray, category: str = "cell") -> FloatArray:
@@ -434,31 +478,27 @@ class CollisionWorld:
     def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:
         """(K,) bool: which bounding spheres (centres (K, 3), radii (K,) m) touch some enabled element's AABB.
         A cheap numpy broad phase in front of fcl: shapes far from everything skip the fcl call entirely."""
-        if self._dirty or self._bounds_dirty:
-            if self._bounds_dirty and not self._dirty:
-                self._dirty = set(CATEGORIES)
-            self.update()
-        if len(self._lo) == 0:
+        phase = self._phase()
+        if len(phase.lo) == 0:
             return np.zeros(len(centres), dtype=bool)
         c = centres[:, None, :]
-        gap = np.maximum(self._lo[None] - c, 0.0) + np.maximum(c - self._hi[None], 0.0)
+        gap = np.maximum(phase.lo[None] - c, 0.0) + np.maximum(c - phase.hi[None], 0.0)
         d2 = np.einsum("kni,kni->kn", gap, gap)
         return np.any(d2 <= (radii * radii)[:, None], axis=1)
 
     def _query(self, obj: fcl.CollisionObject, skip: Iterable[str] = ()) -> str:
         """Category hit by `obj` ('' when free), checking categories in order."""
-        if self._dirty:
-            self.update()
+        phase = self._phase()
         if not skip:
             # one broad phase over everything; only a hit pays for finding its category
-            if self._all is None:
+            if phase.everything is None:
                 return ""
             cdata = fcl.CollisionData(_REQUEST, fcl.CollisionResult())
-            self._all.collide(obj, cdata, _first_contact)
+            phase.everything.collide(obj, cdata, _first_contact)
             self.n_checks += 1
             if not cdata.result.is_collision:
                 return ""
-        for cat, mgr in self._managers.items():
+        for cat, mgr in phase.managers.items():
             if cat in skip:
                 continue
             cdata = fcl.CollisionData(_REQUEST, fcl.CollisionResult())
@@ -478,12 +518,8 @@ class CollisionWorld:
     ) -> list[fcl.CollisionObject]:
         """Pose all tool shapes (self-collision reads them); return those to query: with `only_near`, only shapes
         whose bounding sphere touches some element's box. `inflated` / `margin`: the grown copies instead."""
-        if inflated:
-            objs, radii, local = self._tool_objs_inflated, self._tool_radii_inflated, self._tool_local_inflated
-        elif margin:
-            objs, radii, local = self._tool_objs_margin, self._tool_radii_margin, self._tool_local_margin
-        else:
-            objs, radii, local = self._tool_objs, self._tool_radii, self._tool_local
+        shapes = self._tools["inflated" if inflated else "margin" if margin else "exact"]
+        objs, radii, local = shapes.objects, shapes.radii, shapes.tcp_from_shape
         grown = inflated or margin
         if not grown:
             self._last_opening = opening_m
@@ -496,7 +532,7 @@ class CollisionWorld:
             self._tool_centres = centres
         keep = self.near(centres, radii) if only_near else np.ones(len(poses), dtype=bool)
         out = []
-        for (obj, *_), pose, k in zip(objs, poses, keep, strict=True):
+        for obj, pose, k in zip(objs, poses, keep, strict=True):
             obj.setTransform(_tf(pose))
             if k:
                 out.append(obj)
@@ -524,14 +560,14 @@ class CollisionWorld:
 
     def check_held(self, world_from_tcp: ArrayLike, skip: Sequence[str] = ()) -> Hit | None:
         """First hit of the held object when the TCP is at `world_from_tcp`, or None (nothing held: None)."""
-        if self._held is None:
+        held = self._held
+        if held is None:
             return None
-        _, obj, tcp_from_object = self._held
-        pose = np.asarray(world_from_tcp, dtype=np.float64) @ tcp_from_object
-        obj.setTransform(_tf(pose))
-        if not self.near(pose[None, :3, 3], np.array([self._held_radius]))[0]:
+        pose = np.asarray(world_from_tcp, dtype=np.float64) @ held.tcp_from_object
+        held.obj.setTransform(_tf(pose))
+        if not self.near(pose[None, :3, 3], np.array([held.radius]))[0]:
             return None
-        what = self._query(obj, skip)
+        what = self._query(held.obj, skip)
         return Hit("held", what) if what else None
 
     def check_arm(self, q: ArrayLike, skip: Sequence[str] = (), self_collision: bool = True) -> Hit | None:
@@ -541,17 +577,17 @@ class CollisionWorld:
         return self._check_arm(q, self.arm.frames(q), skip, self_collision)
 
     def _check_arm(self, q: ArrayLike, frames: FloatArray, skip: Sequence[str], self_collision: bool) -> Hit | None:
-        if self.arm is None:
+        if self.arm is None or self._arm is None:
             raise InputError("check_arm needs an arm: call set_arm first")
         poses = self.arm.shape_poses(q, frames)
         centres = np.array([p[:3, 3] for p in poses])
-        near = self.near(centres, self._arm_radii)
+        near = self.near(centres, self._arm.radii)
         near[0] = False  # the base stands on its mount: never checked against the cell
         posed = np.zeros(len(poses), dtype=bool)
         for i in np.flatnonzero(near):
-            self._arm_objs[i].setTransform(_tf(poses[i]))
+            self._arm.objects[i].setTransform(_tf(poses[i]))
             posed[i] = True
-            what = self._query(self._arm_objs[i], skip)
+            what = self._query(self._arm.objects[i], skip)
             if what:
                 return Hit("arm", what, self.arm.shapes[i].link)
         if self_collision:
@@ -560,36 +596,38 @@ class CollisionWorld:
                 world_from_tcp = frames[6] @ self.tool.flange_from_tcp
                 self._pose_tool(world_from_tcp, self._last_opening)
                 if self._held is not None:
-                    self._held[1].setTransform(_tf(world_from_tcp @ self._held[2]))
+                    self._held.obj.setTransform(_tf(world_from_tcp @ self._held.tcp_from_object))
             return self._self_collision(poses, centres, posed)
         return None
 
     def _self_collision(self, poses: list[FloatArray], centres: FloatArray, posed: FloatArray) -> Hit | None:
         """Non-adjacent link pairs, and the tool / held object against base, shoulder and upper arm; pairs whose
         bounding spheres are apart are skipped without calling fcl."""
-        if self.arm is None:
+        if self.arm is None or self._arm is None:
             return None
+        arm = self._arm
         shapes = self.arm.shapes
-        r = self._arm_radii
+        r = arm.radii
         gap = np.linalg.norm(centres[:, None] - centres[None], axis=-1) - (r[:, None] + r[None])
 
         def obj(i: int) -> fcl.CollisionObject:
             if not posed[i]:
-                self._arm_objs[i].setTransform(_tf(poses[i]))
+                arm.objects[i].setTransform(_tf(poses[i]))
                 posed[i] = True
-            return self._arm_objs[i]
+            return arm.objects[i]
 
-        for i, j in zip(*np.nonzero((gap <= 0) & self._pair_mask), strict=True):
+        for i, j in zip(*np.nonzero((gap <= 0) & arm.pair_mask), strict=True):
             if fcl.collide(obj(int(i)), obj(int(j)), _REQUEST, fcl.CollisionResult()):
                 return Hit("self", "arm", f"{shapes[i].link}-{shapes[j].link}")
-        movers = [o for o, *_ in self._tool_objs]
+        exact = self._tools["exact"]
+        movers = list(exact.objects)
         mover_centres = list(self._tool_centres)
-        mover_radii = list(self._tool_radii)
+        mover_radii = list(exact.radii)
         if self._held is not None:
-            movers.append(self._held[1])
-            mover_centres.append(self._held[1].getTranslation())
-            mover_radii.append(self._held_radius)
-        low = self._low_links
+            movers.append(self._held.obj)
+            mover_centres.append(self._held.obj.getTranslation())
+            mover_radii.append(self._held.radius)
+        low = arm.low_links
         mc = np.asarray(mover_centres).reshape(-1, 3)
         gap_m = np.linalg.norm(centres[low][:, None] - mc[None], axis=-1) - (r[low][:, None] + np.asarray(mover_radii))
         for a, m in zip(*np.nonzero(gap_m <= 0), strict=True):
@@ -630,44 +668,42 @@ class CollisionWorld:
         opening_m)` finds nothing (no arm, tool or held-object sphere touches an enabled element's box, no
         self-collision pair's spheres touch). False means 'not proven': run `check_config`. One vectorised pass, so
         dense edge checks pay fcl only near contacts."""
-        if self.arm is None or self.tool is None:
+        if self.arm is None or self.tool is None or self._arm is None:
             raise InputError("configs_clear needs set_arm and set_tool first")
         q = np.asarray(qs, dtype=np.float64).reshape(-1, 6)
         k = len(q)
         if k == 0:
             return np.zeros(0, dtype=bool)
-        if self._dirty or self._bounds_dirty:
-            if self._bounds_dirty and not self._dirty:
-                self._dirty = set(CATEGORIES)
-            self.update()
+        phase = self._phase()
+        exact = self._tools["exact"]
         frames = self.arm.frames(q)  # (K, 7, 4, 4)
         joints = np.array([s.joint for s in self.arm.shapes])
         local_c = np.stack([np.asarray(s.link_from_shape, dtype=np.float64)[:3, 3] for s in self.arm.shapes])
         f = frames[:, joints]  # (K, S, 4, 4)
         arm_c = np.einsum("ksij,sj->ksi", f[..., :3, :3], local_c) + f[..., :3, 3]
         world_from_tcp = frames[:, 6] @ self.tool.flange_from_tcp
-        local = self._tool_local.copy()
+        local = exact.tcp_from_shape.copy()
         local[:, 0, 3] += self._tool_moves * (opening_m / 2.0 + self._tool_finger_half)
         tool_c = np.einsum("kij,sj->ksi", world_from_tcp[:, :3, :3], local[:, :3, 3]) + world_from_tcp[:, None, :3, 3]
         movers_c = [arm_c[:, 1:], tool_c]
-        movers_r = [self._arm_radii[1:], self._tool_radii]
+        movers_r = [self._arm.radii[1:], exact.radii]
         if self._held is not None:
-            held = world_from_tcp @ self._held[2]
+            held = world_from_tcp @ self._held.tcp_from_object
             movers_c.append(held[:, None, :3, 3])
-            movers_r.append(np.array([self._held_radius]))
+            movers_r.append(np.array([self._held.radius]))
         centres = np.concatenate(movers_c, axis=1)  # (K, M, 3)
         radii = np.concatenate(movers_r)
         clear = np.ones(k, dtype=bool)
-        if len(self._lo):
-            gap = np.maximum(self._lo[None, None] - centres[:, :, None], 0.0) + np.maximum(
-                centres[:, :, None] - self._hi[None, None], 0.0
+        if len(phase.lo):
+            gap = np.maximum(phase.lo[None, None] - centres[:, :, None], 0.0) + np.maximum(
+                centres[:, :, None] - phase.hi[None, None], 0.0
             )  # (K, M, E, 3)
             d2 = np.einsum("kmei,kmei->kme", gap, gap)
             clear &= ~np.any(d2 <= (radii * radii)[None, :, None], axis=(1, 2))
-        r = self._arm_radii
+        r = self._arm.radii
         d = np.linalg.norm(arm_c[:, :, None] - arm_c[:, None], axis=-1) - (r[:, None] + r[None])
-        clear &= ~np.any((d <= 0) & self._pair_mask[None], axis=(1, 2))
-        low = self._low_links
+        clear &= ~np.any((d <= 0) & self._arm.pair_mask[None], axis=(1, 2))
+        low = self._arm.low_links
         extra_c = np.concatenate(movers_c[1:], axis=1)
         extra_r = np.concatenate(movers_r[1:])
         d = np.linalg.norm(arm_c[:, low][:, :, None] - extra_c[:, None], axis=-1) - (r[low][:, None] + extra_r[None])
@@ -682,7 +718,7 @@ class CollisionWorld:
         for el in self.elements.values():
             if el.name in self._disabled:
                 continue
-            for obj, *_ in self._tool_objs:
+            for obj in self._tools["exact"].objects:
                 if fcl.collide(obj, el.obj, req, fcl.CollisionResult()):
                     names.append(el.name)
                     break
@@ -690,12 +726,11 @@ class CollisionWorld:
 
     def tool_distance(self, world_from_tcp: ArrayLike, opening_m: float = 0.0) -> float:
         """Smallest distance (m) from the tool to any enabled element (0 when touching). Slow: reports only."""
-        if self._dirty:
-            self.update()
+        phase = self._phase()
         self._pose_tool(np.asarray(world_from_tcp, dtype=np.float64), opening_m)
         best = np.inf
-        for mgr in self._managers.values():
-            for obj, *_ in self._tool_objs:
+        for mgr in phase.managers.values():
+            for obj in self._tools["exact"].objects:
                 ddata = fcl.DistanceData(fcl.DistanceRequest(), fcl.DistanceResult())
                 mgr.distance(obj, ddata, fcl.defaultDistanceCallback)
                 best = min(best, max(float(ddata.result.min_distance), 0.0))

@@ -231,7 +231,6 @@ def evaluate_candidates(
     # collision checks; candidates after the stop are never solved ('not_evaluated')
     feasible: list[Evaluation] = []
     per_target: Counter[int] = Counter()
-    current_target = -1
     chunk = max(int(opts.ik_chunk), 1)
     cursor = 0
     done = False
@@ -255,10 +254,6 @@ def evaluate_candidates(
                 break
             if opts.max_feasible_per_target and per_target[c.target] >= opts.max_feasible_per_target:
                 continue
-            if c.target != current_target:
-                if current_target >= 0:
-                    world.enable(targets[current_target].name)
-                current_target = c.target
             ev = _check_collisions(i, c, poses[i], q_blk[i], ok_blk[i], targets[c.target], world, arm, home_q, opts)
             verdict[i] = ev
             if ev.feasible:
@@ -268,9 +263,6 @@ def evaluate_candidates(
                 per_target[c.target] += 1
         if opts.max_feasible and len(feasible) >= opts.max_feasible:
             done = True
-    if current_target >= 0:
-        world.enable(targets[current_target].name)
-        world.detach()
     final = [
         v if v is not None else Evaluation(candidates[i], False, "not_evaluated", "", poses[i], prior=prior[i])
         for i, v in enumerate(verdict)
@@ -430,14 +422,12 @@ def _check_collisions(
 ) -> Evaluation:
     """Tool at pre-grasp and (backed-off) grasp, then the arm on each valid branch at all five poses; the target
     is held (attached, removed from the world) at lift and exit."""
-    world.detach()
     # the tool at the grasp pose itself against everything but the target; against the target backed off a little
     # (suction cups and jaw pads touch it by design)
-    world.disable(target.name)
-    hit = world.check_tool(poses[2], c.opening_m)
-    if hit is None and opts.noise_margin:  # neighbours (not the cell: its boxes are exact) with the noise margin
-        hit = world.check_tool(poses[2], c.opening_m, skip=("cell",), margin=True)
-    world.enable(target.name)
+    with world.without(target.name):
+        hit = world.check_tool(poses[2], c.opening_m)
+        if hit is None and opts.noise_margin:  # neighbours (not the cell: its boxes are exact) with the noise margin
+            hit = world.check_tool(poses[2], c.opening_m, skip=("cell",), margin=True)
     if hit is not None:
         return Evaluation(c, False, hit.reason, "grasp", poses)
     a = poses[2][:3, 2]
@@ -465,18 +455,15 @@ def _check_collisions(
 def _arm_at_poses(
     q: FloatArray, c: GraspCandidate, target: Target, poses: FloatArray, world: CollisionWorld
 ) -> tuple[Hit | None, str]:
-    world.detach()
-    world.enable(target.name)
     for p in (2, 1, 0):  # grasp first: the most constrained
         hit = world.check_arm(q[p])
         if hit is not None:
             return hit, POSE_NAMES[p]
-    world.disable(target.name)
-    world.attach(target.name, target.mesh, invert_pose(poses[2]) @ target.world_from_object)  # type: ignore[arg-type]
-    for p in (3, 4):
-        hit = world.check_config(q[p], c.opening_m)
-        if hit is not None:
-            return hit, POSE_NAMES[p]
+    with world.holding(target.name, target.mesh, invert_pose(poses[2]) @ target.world_from_object):  # type: ignore[arg-type]
+        for p in (3, 4):
+            hit = world.check_config(q[p], c.opening_m)
+            if hit is not None:
+                return hit, POSE_NAMES[p]
     return None, ""
 
 
@@ -488,7 +475,6 @@ def _with_score(
     travel = float(np.abs(ev.q[0] - home_q).sum())
     clear = 0.0
     if opts.clearance:
-        world.detach()
         clear = 1.0 if world.check_tool(ev.world_from_tcp[1], ev.candidate.opening_m, inflated=True) is None else 0.0
     score = prior - opts.w_travel * travel + opts.w_clearance * clear
     return Evaluation(ev.candidate, True, "", "", ev.world_from_tcp, ev.q, ev.branch, score, prior)

@@ -404,15 +404,11 @@ def _place_motion(
         if not all(free_held(q) for q in placing):
             last = _PathRejected(f"place {place.name!r}: collision placing", "place_collision")
             continue
-        held = world.held_name, world._held
-        world.detach()
-        try:
-            if any(world.check_arm(q) is not None for q in seg_post[1:]):
-                last = _PathRejected(f"place {place.name!r}: collision leaving", "place_collision")
-                continue
-        finally:
-            if held[1] is not None:
-                world.attach(held[0], target.mesh, tcp_from_object)  # type: ignore[arg-type]
+        with world.empty_handed():
+            leaving_hit = any(world.check_arm(q) is not None for q in seg_post[1:])
+        if leaving_hit:
+            last = _PathRejected(f"place {place.name!r}: collision leaving", "place_collision")
+            continue
         return seg_place, tcp_place, seg_post, tcp_post, place
     raise last
 
@@ -438,8 +434,6 @@ def _build_path(
     free_empty = _ConfigFree(world, opening)
     free_held = free_empty  # the world's held object (attached or not) is part of every check
 
-    world.detach()
-    world.enable(target.name)
     # 1. straight lines first (cheap), transfers (joint-space search) last
     seg_entry, tcp_entry = _line(arm, tcp_from_flange, poses[0], poses[1], qs[0], b, opts)
     seg_pre, tcp_pre = _line(arm, tcp_from_flange, poses[1], poses[2], seg_entry[-1], b, opts)
@@ -453,17 +447,14 @@ def _build_path(
     for q, p in zip(seg_pre[1:-1], tcp_pre[1:-1], strict=True):
         if np.linalg.norm(p - tcp_pre[-1]) <= backoff:
             # the tool touches the target by design at the end: everything else is still checked
-            world.disable(target.name)
-            hit = world.check_config(q, opening)
-            world.enable(target.name)
+            with world.without(target.name):
+                hit = world.check_config(q, opening)
             if hit is not None or world.check_arm(q) is not None:
                 raise _PathRejected("collision at the end of the approach", "path_collision")
             continue
         if not free_empty(q):
             raise _PathRejected("collision on the approach", "path_collision")
-    world.disable(target.name)
-    world.attach(target.name, target.mesh, tcp_from_object)  # type: ignore[arg-type]
-    try:
+    with world.holding(target.name, target.mesh, tcp_from_object):  # type: ignore[arg-type]
         lifted = tcp_lift - tcp_lift[0]
         out_qs = np.concatenate([seg_lift[1:], seg_exit[1:]])
         out_clear = world.configs_clear(out_qs, opening)
@@ -498,9 +489,6 @@ def _build_path(
             transfer_out = plan_joint_motion(seg_exit[-1], seg_place[0], free_held, arm.lower, arm.upper, opts.motion)
         except PlanningError as exc:
             raise _PathRejected(f"no joint path from the bin exit to the place: {exc}", "place_transfer") from exc
-    finally:
-        world.detach()
-        world.enable(target.name)
     try:
         transfer_in = plan_joint_motion(home, seg_entry[0], free_empty, arm.lower, arm.upper, opts.motion)
     except PlanningError as exc:
