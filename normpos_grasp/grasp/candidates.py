@@ -1,9 +1,10 @@
-"""Grasp candidates in the world: template-annotated pick frames (expanded about free symmetry axes and over the
-tilt cone) plus automatic synthesis, for one fitted object and one tool; primitive templates for objects that
-matched no template."""
+"""Grasp candidates in the world: template-annotated pick frames (expanded about free symmetry axes, over the
+tilt cone and through the template's symmetries) plus automatic synthesis, for one fitted object and one tool;
+primitive templates for objects that matched no template."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -14,8 +15,15 @@ from normpos_grasp.geometry.transforms import rotation_from_rotvec, transform_po
 from normpos_grasp.grasp.synthesis import SynthesisOptions, _cylinder_axis, _obb, synthesize, tcp_frame
 from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.normpos import NormPosition
-from normpos_grasp.records.template import GraspAnnotation, Template
+from normpos_grasp.records.template import GraspAnnotation, Symmetry, Template
 from normpos_grasp.typing import FloatArray
+
+logger = logging.getLogger(__name__)
+
+#: most elements of a discrete symmetry group built by closing a template's listed transforms under products
+MAX_GROUP = 120
+#: (m, rad) within which a symmetric image of a synthesized grasp counts as one already sampled
+SYNTHESIZED_TOLERANCE = (5e-3, float(np.deg2rad(15.0)))
 
 
 @dataclass(frozen=True)
@@ -26,7 +34,11 @@ class CandidateOptions:
     (cylinders, spheres, annotated free axes) also offer each grasp rotated about the symmetry axis so that it
     approaches as close to straight down as the symmetry allows (an equivalent grasp, usually the reachable one).
     vertical_prism: for prism-like parts (bars, boxes, cylinders) lying tilted (leaning on a neighbour), also offer
-    straight-down pinches closing horizontally across the part's long axis (`vertical_prism_grasps`)."""
+    straight-down pinches closing horizontally across the part's long axis (`vertical_prism_grasps`).
+    symmetric: carry every grasp through the template's symmetries (`symmetric_grasps`), so a part fitted in any
+    equivalent pose keeps all of its grasps: annotated grasps through the discrete group combined with each
+    continuous axis sampled in `symmetry_steps` turns, synthesized ones through the discrete group (synthesis
+    already samples around continuous axes; an image within `SYNTHESIZED_TOLERANCE` of a sampled grasp is dropped)."""
 
     free_axis_steps: int = 8
     tilt_steps: int = 4
@@ -34,6 +46,8 @@ class CandidateOptions:
     synthesis: SynthesisOptions = SynthesisOptions()
     snap_to_vertical: bool = True
     vertical_prism: bool = True
+    symmetric: bool = True
+    symmetry_steps: int = 4
 
 
 def expand_annotation(g: GraspAnnotation, options: CandidateOptions) -> list[tuple[str, FloatArray]]:
@@ -70,18 +84,89 @@ def _synthesize_cached(
     return tuple(synthesize(template, kinds, options))
 
 
+def symmetry_group(symmetry: Symmetry, continuous_steps: int = 1) -> FloatArray:
+    """(M, 4, 4) object_from_object transforms mapping the part onto itself, identity first: the discrete transforms
+    closed under products (a list of generators, or a BOP `symmetries_discrete` list, gives the whole group; at
+    most `MAX_GROUP` elements), each combined with every continuous axis sampled in `continuous_steps` turns
+    (1: discrete only)."""
+    gens = np.asarray([np.asarray(t, dtype=np.float64) for t in symmetry.discrete]).reshape(-1, 4, 4)
+    group = np.eye(4)[None]
+    frontier = gens
+    while len(frontier) and len(group) <= MAX_GROUP:
+        fresh: list[FloatArray] = []
+        for t in frontier:  # keep products not yet in the group (nor already among the fresh ones)
+            known = group if not fresh else np.concatenate([group, np.stack(fresh)])
+            if not np.any(np.abs(known - t).max(axis=(1, 2)) < 1e-6):
+                fresh.append(t)
+        if not fresh:
+            break
+        new = np.stack(fresh)
+        group = np.concatenate([group, new])
+        frontier = np.einsum("aij,bjk->abik", new, gens).reshape(-1, 4, 4)
+    if len(group) > MAX_GROUP:
+        logger.warning("symmetry group has over %d elements; using the first %d", MAX_GROUP, MAX_GROUP)
+        group = group[:MAX_GROUP]
+    closed = Symmetry(continuous=symmetry.continuous, discrete=tuple(group[1:]))
+    return closed.transforms(continuous_steps=max(int(continuous_steps), 1))
+
+
+def _same_grasp(pose: FloatArray, kept: FloatArray, suction: bool, pos_tol: float, cos_tol: float) -> bool:
+    """Whether `pose` (4, 4) is the same grasp as any of `kept` (K, 4, 4): TCP within `pos_tol` m, the same
+    approach axis within the angle of `cos_tol` and, for a parallel gripper, the same closing line (jaws closing
+    along x or -x touch the same contacts); for suction the approach alone counts (the cup is round)."""
+    near = np.linalg.norm(kept[:, :3, 3] - pose[:3, 3], axis=1) <= pos_tol
+    if not near.any():
+        return False
+    same = kept[near, :3, 2] @ pose[:3, 2] >= cos_tol
+    if not suction:
+        same &= np.abs(kept[near, :3, 0] @ pose[:3, 0]) >= cos_tol
+    return bool(same.any())
+
+
+def symmetric_grasps(
+    grasps: list[tuple[GraspAnnotation, str, str, FloatArray]],
+    transforms: FloatArray,
+    pos_tol_m: float = 1e-3,
+    angle_tol_rad: float = np.deg2rad(2.0),
+) -> list[tuple[GraspAnnotation, str, str, FloatArray]]:
+    """`grasps` (annotation, source, id, object_from_tcp) carried through the symmetry `transforms` (M, 4, 4),
+    identity first: the given grasps, then each image `transforms[k] @ object_from_tcp` (id suffixed `@s<k>`)
+    that is the same grasp as none kept before it (`_same_grasp`: TCP within `pos_tol_m`, axes within
+    `angle_tol_rad`). The given grasps are all kept."""
+    if len(transforms) <= 1 or not grasps:
+        return list(grasps)
+    out = list(grasps)
+    cos_tol = float(np.cos(angle_tol_rad))
+    kept = {scheme: [p for g, _, _, p in grasps if g.scheme == scheme] for scheme in {g.scheme for g, *_ in grasps}}
+    stacks = {scheme: np.stack(poses) for scheme, poses in kept.items()}
+    for k in range(1, len(transforms)):
+        for g, source, gid, pose in grasps:
+            image = transforms[k] @ pose
+            if _same_grasp(image, stacks[g.scheme], g.scheme == "suction", pos_tol_m, cos_tol):
+                continue
+            out.append((g, source, f"{gid}@s{k}", image))
+            stacks[g.scheme] = np.concatenate([stacks[g.scheme], image[None]])
+    return out
+
+
 def object_grasps(
     template: Template, kinds: tuple[str, ...], options: CandidateOptions
 ) -> list[tuple[GraspAnnotation, str, str, FloatArray]]:
-    """(annotation, source, id, object_from_tcp) for every grasp of `template` usable by tool kinds `kinds`."""
-    out = []
+    """(annotation, source, id, object_from_tcp) for every grasp of `template` usable by tool kinds `kinds`,
+    carried through the template's symmetries when `options.symmetric`."""
     annotated = [g for g in template.grasps if g.scheme in kinds]
-    for g in annotated:
-        for gid, pose in expand_annotation(g, options):
-            out.append((g, "annotated", gid, pose))
+    out = [(g, "annotated", gid, pose) for g in annotated for gid, pose in expand_annotation(g, options)]
+    sym = template.symmetry if options.symmetric else Symmetry()
+    if out and sym.is_symmetric:
+        out = symmetric_grasps(out, symmetry_group(sym, options.symmetry_steps))
     if options.synthesize == "always" or (options.synthesize == "missing" and not annotated):
-        for g in _synthesize_cached(template, kinds, options.synthesis):
-            out.append((g, "synthesized", g.id, np.asarray(g.object_from_tcp, dtype=np.float64)))
+        synthesized = [
+            (g, "synthesized", g.id, np.asarray(g.object_from_tcp, dtype=np.float64))
+            for g in _synthesize_cached(template, kinds, options.synthesis)
+        ]
+        if synthesized and sym.discrete:  # samples of a continuum: an image near a sample adds nothing
+            synthesized = symmetric_grasps(synthesized, symmetry_group(sym, 1), *SYNTHESIZED_TOLERANCE)
+        out.extend(synthesized)
     return out
 
 
