@@ -31,7 +31,7 @@ import numpy as np
 from normpos_grasp.errors import InputError, SimulationError
 from normpos_grasp.geometry.transforms import invert_pose, make_pose, rotation_angle
 from normpos_grasp.records.template import Template
-from normpos_grasp.sim.physics_decompose import DecompositionOptions, convex_decomposition
+from normpos_grasp.sim.physics_decompose import DecompositionOptions, collision_hulls, convex_decomposition
 from normpos_grasp.sim.physics_suction import SealCheck, SealOptions, check_seal, vacuum_force_n
 from normpos_grasp.typing import FloatArray
 from normpos_grasp.validation import as_float_array, check_pose
@@ -330,14 +330,15 @@ def _primitive(template: Template) -> tuple[str, FloatArray] | None:
 
 def collision_pieces(template: Template, options: DecompositionOptions | None = None) -> list[tuple[str, FloatArray]]:
     """Collision geometry of a template in its object frame: [('box', size (3,))], [('sphere', (r,))] or
-    [('mesh', hull vertices (K, 3)), ...] from the convex decomposition. Metres."""
+    [('mesh', hull vertices (K, 3)), ...] from the convex decomposition, each one MuJoCo accepts
+    (`collision_hulls`: flat or thin pieces thickened, pieces without area dropped). Metres."""
     prim = _primitive(template)
     if prim is not None:
         return [prim]
     pieces = convex_decomposition(
         np.asarray(template.mesh.vertices, dtype=np.float64), np.asarray(template.mesh.faces), options
     )
-    return [("mesh", p.vertices) for p in pieces]
+    return [("mesh", p) for p in collision_hulls([p.vertices for p in pieces])]
 
 
 def _hand_scene_xml(

@@ -6,6 +6,10 @@ with the smallest sum of the two halves' hull volumes wins, as in V-HACD) until 
 to within `DecompositionOptions.min_fill`. Pieces are clipped exactly: every piece carries its triangles
 plus planar fan caps closing each cut, so its volume is exact (signed-volume sums stay valid for caps of
 any shape, holes included) and its hull is the hull of the clipped surface vertices.
+
+`collision_hulls` makes any list of pieces one that MuJoCo's mesh compiler accepts (its convex hull of a flat
+point set fails with "mesh has coplanar vertices"): duplicates merged, pieces without area dropped, flat or thin
+pieces thickened to a minimum thickness.
 """
 
 from __future__ import annotations
@@ -59,6 +63,51 @@ class _Piece:
 
 
 _CACHE: dict[str, tuple[ConvexPiece, ...]] = {}
+
+#: thinnest collision piece handed to MuJoCo, m (thinner pieces are thickened to it, symmetrically)
+MIN_THICKNESS_M = 1e-3
+
+
+def collision_hull(points: FloatArray, min_thickness_m: float = MIN_THICKNESS_M) -> FloatArray | None:
+    """(K, 3) points of one convex collision piece (metres) that MuJoCo's convex hull accepts, or None to drop it.
+
+    Duplicate points (within 1e-9 m) are merged. A piece spanning no area (fewer than 3 points, all on one line or
+    at one point) is dropped. A piece thinner than `min_thickness_m` across its thinnest principal direction
+    (flat, all points on one plane, included) is thickened symmetrically to `min_thickness_m` along it, so its
+    hull has volume and its mid-surface stays where it was.
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) < 3:
+        return None
+    pts = np.unique(np.round(pts, 9), axis=0)
+    if len(pts) < 3:
+        return None
+    centre = pts.mean(axis=0)
+    _, sv, vt = np.linalg.svd(pts - centre, full_matrices=False)
+    size = float(np.ptp(pts @ vt[0]))
+    if size <= 0.0 or np.ptp(pts @ vt[1]) <= 1e-9 * max(size, 1e-3):  # a point or a line: no area
+        return None
+    normal = vt[2]
+    width = float(np.ptp(pts @ normal))
+    if width < min_thickness_m:
+        half = 0.5 * (min_thickness_m - width)
+        pts = np.concatenate([pts + half * normal, pts - half * normal])
+    if _hull(pts) is None:  # still no usable hull (numerically degenerate): drop it
+        return None
+    return pts
+
+
+def collision_hulls(
+    pieces: list[FloatArray] | tuple[FloatArray, ...], min_thickness_m: float = MIN_THICKNESS_M
+) -> list[FloatArray]:
+    """`collision_hull` of each piece, dropped ones left out (see there). Raises MeshError when none is left."""
+    out = [h for h in (collision_hull(p, min_thickness_m) for p in pieces) if h is not None]
+    if len(out) < len(pieces):
+        logger.debug("dropped %d collision pieces without area", len(pieces) - len(out))
+    if not out:
+        raise MeshError("collision geometry: every convex piece is degenerate (no area); the mesh is degenerate")
+    return out
 
 
 def convex_decomposition(

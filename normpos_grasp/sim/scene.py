@@ -14,11 +14,13 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
-from normpos_grasp.errors import InputError, SimulationError
+from normpos_grasp.errors import InputError, MeshError, SimulationError
 from normpos_grasp.geometry.transforms import make_pose, random_rotation, rotation_from_quaternion
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.parts import PART_COLORS
+from normpos_grasp.sim.physics_decompose import collision_hulls, convex_decomposition
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:
@@ -233,7 +235,10 @@ def convex_pieces(template: Template) -> list[tuple[str, Any]]:
     """Collision pieces of a part in its object frame: ('box', full size (3,)), ('sphere', r), ('mesh', (V, 3)).
 
     Boxes and spheres use exact primitives; rings are cut into 16 convex sectors, L-brackets along their
-    bisector plane into two convex halves; anything else collides as its convex hull.
+    bisector plane into two convex halves, when those pieces make up the part (their hulls' volumes add up to
+    the part's); other convex parts collide as their hull, other non-convex parts as their convex decomposition
+    (`physics_decompose`). Every mesh piece is one MuJoCo accepts (`collision_hulls`: flat or thin pieces
+    thickened, pieces without area dropped), for any mesh.
     """
     mesh = template.mesh
     v = np.asarray(mesh.vertices, dtype=np.float64)
@@ -245,9 +250,18 @@ def convex_pieces(template: Template) -> list[tuple[str, Any]]:
         r = float(np.linalg.norm(v, axis=1).max())
         if abs(mesh.volume - 4 / 3 * np.pi * r**3) < 0.02 * mesh.volume:
             return [("sphere", r)]
+    return [("mesh", h) for h in collision_hulls(_mesh_pieces(template))]
+
+
+def _mesh_pieces(template: Template) -> list[FloatArray]:
+    """Convex point sets covering the part (object frame, metres): the shape heuristics of `convex_pieces` when
+    they fit the mesh, else its hull (convex parts) or its convex decomposition."""
+    mesh = template.mesh
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    volume = float(mesh.volume)
+    pieces: list[FloatArray] = []
     if template.shape == "ring":
         ang = np.arctan2(v[:, 1], v[:, 0])
-        pieces = []
         n = 16
         for k in range(n):
             a0 = -np.pi + 2 * np.pi * k / n
@@ -256,14 +270,32 @@ def convex_pieces(template: Template) -> list[tuple[str, Any]]:
             d1 = np.angle(np.exp(1j * (ang - a1)))
             sel = (d0 >= -1e-6) & (d1 <= 1e-6)
             if sel.sum() >= 4:
-                pieces.append(("mesh", v[sel]))
-        if pieces:
-            return pieces
-    if template.shape == "bracket":
-        halves = [v[v[:, 1] >= -1e-9], v[v[:, 1] <= 1e-9]]
-        if all(len(h) >= 4 for h in halves):
-            return [("mesh", h) for h in halves]
-    return [("mesh", np.asarray(mesh.convex_hull.vertices, dtype=np.float64))]
+                pieces.append(v[sel])
+    elif template.shape == "bracket":
+        pieces = [v[v[:, 1] >= -1e-9], v[v[:, 1] <= 1e-9]]
+    if pieces and _fills(pieces, volume):
+        return pieces
+    hull = np.asarray(mesh.convex_hull.vertices, dtype=np.float64)
+    if volume >= 0.97 * float(mesh.convex_hull.volume):
+        return [hull]
+    try:
+        return [p.vertices for p in convex_decomposition(v, np.asarray(mesh.faces))]
+    except MeshError as exc:  # not a closed mesh: collide as its hull
+        logger.warning("part '%s' collides as its convex hull: %s", template.name, exc)
+        return [hull]
+
+
+def _fills(pieces: list[FloatArray], volume: float) -> bool:
+    """Whether the hulls of `pieces` all have volume and add up to the solid's `volume` (m^3) within -2 / +5 %."""
+    total = 0.0
+    for p in pieces:
+        if len(p) < 4:
+            return False
+        try:
+            total += float(ConvexHull(p).volume)
+        except QhullError:  # flat or collinear piece
+            return False
+    return 0.98 * volume <= total <= 1.05 * volume
 
 
 def build_mjcf(
