@@ -1,4 +1,4 @@
-"""CollisionWorld: categories, scoped without/holding, clutter voxels, arm self-collision, tool opening; cell YAML loading."""
+"""CollisionWorld: categories, scoped without/holding, clutter voxels, arm self-collision, tool opening, cell YAML."""
 
 from __future__ import annotations
 
