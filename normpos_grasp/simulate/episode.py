@@ -19,7 +19,6 @@ something), 'physics_drop' (missed, dropped or slipped).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
 from dataclasses import dataclass, field, replace
@@ -31,6 +30,7 @@ import numpy as np
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.geometry.transforms import make_pose, transform_points
 from normpos_grasp.planning.evaluate import EvaluationOptions
+from normpos_grasp.planning.push import PushHand, plan_push
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
 from normpos_grasp.typing import FloatArray
@@ -64,8 +64,8 @@ class SimulationConfig:
     plan_evaluation: the planner's candidate evaluation settings. relaxed_plan: before a retry, the same frame is
     planned again with `relaxed_evaluation` (riskier grasps: no extra noise margin around the other parts, jaw
     tips raised further off the floor); physics judges them. max_nudges: when still no grasp is found, the cell
-    may push a part this many times per pick (`_plan_nudge` on the perceived scene, `sim.physics_push` on the
-    true one) by `nudge_m` metres and perceive again, before the retries.
+    may push a part this many times per pick (`planning.push.plan_push` on the perceived scene,
+    `sim.physics_push` on the true one) by `nudge_m` metres and perceive again, before the retries.
     clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
     gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
     resolution: (W, H) image size, pixels. physics: physics options.
@@ -352,88 +352,6 @@ def _perceive(
     return _Perception(frame, instances, normpositions, fits, len(fits) - reused, reused)
 
 
-def _plan_nudge(
-    plan: Any,
-    fits: list[Any],
-    normpositions: list[Any],
-    cell: Any,
-    spec: GripperSpec,
-    floor_z: float,
-    push_m: float,
-) -> tuple[FloatArray, FloatArray] | None:
-    """A push from the perceived scene only (fits and measured points, never the true poses): for the perceived
-    objects, highest first, and horizontal directions ranked towards the bin centre and away from the nearest
-    neighbours, the closed gripper's start pose beside the object's far side (jaw tips at a third of its height,
-    at least 6 mm above the floor; then at three quarters in any direction, tipping it over) must be clear of
-    everything from 8 cm above down to the start (jaws closing across or along the push), and the hand must stay
-    clear of the cell over the push (`push_m`, else half of it).
-    Returns (world_from_tcp (4, 4), push (3,)) or None."""
-    from normpos_grasp.kinematics.arm import ArmModel
-    from normpos_grasp.planning.plan import PlanOptions, build_world
-
-    targets = list(plan.targets)
-    if not targets:
-        return None
-    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
-    world, _, _ = build_world(cell, fits, normpositions, arm, PlanOptions(pick_unmatched=True))
-    world.set_arm(arm)
-    world.set_tool(cell.tool)
-    world.update()
-    tip = float(getattr(cell.tool, "finger_depth_m", 0.0) or spec.tip_beyond_tcp_m)
-    half_width = spec.finger_width_m / 2.0
-    bin_xy = np.asarray(cell.bin.world_from_bin, dtype=np.float64)[:2, 3]
-    geo = []
-    for t in targets:
-        verts = np.asarray(t.mesh.vertices, dtype=np.float64) @ t.world_from_object[:3, :3].T
-        verts = verts + t.world_from_object[:3, 3]
-        geo.append((verts, verts.mean(axis=0)))
-    order = sorted(range(len(targets)), key=lambda k: -float(geo[k][0][:, 2].max()))
-    angles = np.arange(8) * (np.pi / 4.0)
-    dirs = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(8)])
-    for k in order:
-        verts, c = geo[k]
-        pref = bin_xy - c[:2]
-        pref = pref / max(float(np.linalg.norm(pref)), 1e-9)
-        for j, (_, cj) in enumerate(geo):
-            d = c[:2] - cj[:2]
-            dist = float(np.linalg.norm(d))
-            if j != k and 1e-6 < dist < 0.12:
-                pref = pref + d / dist
-        norm = max(float(np.linalg.norm(pref)), 1e-9)
-        ranked = [
-            m for m in sorted(range(8), key=lambda m: -float(dirs[m, :2] @ pref)) if dirs[m, :2] @ pref > -0.2 * norm
-        ]
-        low, high = float(verts[:, 2].min()), float(verts[:, 2].max())
-        # jaw tips at a third of the part's height (slide it), else at three quarters (tip it over)
-        heights = [max(floor_z + 0.006, low + (high - low) * f) for f in (1.0 / 3.0, 0.75)]
-        everywhere = sorted(range(8), key=lambda m: -float(dirs[m, :2] @ pref))  # tipping over: any way it falls
-        tries = [(m, heights[0]) for m in ranked] + [(m, heights[1]) for m in everywhere]
-        for (m, tip_z), across in itertools.product(tries, (True, False)):
-            d = dirs[m]
-            back = float(c @ d - (verts @ d).min())
-            # jaws closing across the push (a 4 cm wide pusher) or along it (the palm's long side along the push)
-            x = np.array([-d[1], d[0], 0.0]) if across else d.copy()
-            reach = half_width if across else spec.finger_thickness_m
-            z = np.array([0.0, 0.0, -1.0])
-            start = np.eye(4)
-            start[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-            start[:3, 3] = [*(c[:2] - d[:2] * (back + reach + 0.01)), tip_z + tip]
-            descent = [start.copy() for _ in range(4)]
-            for n, lift in enumerate((0.0, 0.02, 0.05, 0.08)):
-                descent[n][2, 3] += lift
-            if any(world.check_tool(p, 0.0) is not None for p in descent):
-                continue
-            for dist in (push_m, push_m / 2.0):
-                along = []
-                for s in np.linspace(0.0, dist, 6)[1:]:
-                    p = start.copy()
-                    p[:3, 3] += d * s
-                    along.append(p)
-                if all(world.check_tool(p, 0.0, skip=("object", "clutter")) is None for p in along):
-                    return start, d * dist
-    return None
-
-
 def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
     from normpos_grasp.planning.plan import PlanOptions, plan_pick
@@ -497,12 +415,13 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 break
             nudge = None
             if nudges_left > 0:
-                nudge = _plan_nudge(plan, seen.fits, seen.normpositions, cell, spec, floor_z, config.nudge_m)
+                hand = PushHand(spec.tip_beyond_tcp_m, spec.finger_width_m, spec.finger_thickness_m)
+                nudge = plan_push(plan, seen.fits, seen.normpositions, cell, hand, floor_z, config.nudge_m)
             if nudge is not None:
                 from normpos_grasp.sim.physics_push import PushOptions, simulate_push
 
                 pushed = simulate_push(
-                    list(zip(templates, poses, strict=True)), statics, spec, nudge[0], nudge[1],
+                    list(zip(templates, poses, strict=True)), statics, spec, nudge.world_from_tcp, nudge.push,
                     PushOptions(physics=config.physics),
                 )  # fmt: skip
                 nudges_left -= 1

@@ -1,0 +1,123 @@
+"""Pushes planned on the perceived scene: when no grasp is feasible, slide or tip a part so that one becomes feasible.
+
+A push is planned from the fits and the measured points only (never from true poses): the closed gripper descends
+beside a perceived object's far side and pushes it horizontally towards the bin centre and away from its neighbours.
+`normpos-grasp simulate` replays it in MuJoCo on the true scene (`sim.physics_push`); a cell would run it as two
+linear moves.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from normpos_grasp.cell.config import CellConfig
+from normpos_grasp.errors import InputError
+from normpos_grasp.kinematics.arm import ArmModel
+from normpos_grasp.planning.plan import PlanOptions, build_world
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.plan import PickPlan
+from normpos_grasp.records.template import TemplateFit
+from normpos_grasp.typing import FloatArray
+
+
+@dataclass(frozen=True)
+class PushHand:
+    """The closed parallel gripper as a pusher, m: how far the fingertips reach past the TCP along +z, and the
+    finger's width (across the closing direction) and thickness (along it)."""
+
+    tip_beyond_tcp_m: float
+    finger_width_m: float
+    finger_thickness_m: float
+
+
+@dataclass(frozen=True)
+class Push:
+    """A planned push: the closed gripper's start pose `world_from_tcp` (4, 4) and the horizontal push (3,), m."""
+
+    world_from_tcp: FloatArray
+    push: FloatArray
+
+
+def plan_push(
+    plan: PickPlan,
+    fits: Sequence[TemplateFit],
+    normpositions: Sequence[NormPosition],
+    cell: CellConfig,
+    hand: PushHand,
+    floor_z: float,
+    push_m: float,
+) -> Push | None:
+    """A push from the perceived scene only (fits and measured points, never the true poses): for the perceived
+    objects, highest first, and horizontal directions ranked towards the bin centre and away from the nearest
+    neighbours, the closed gripper's start pose beside the object's far side (jaw tips at a third of its height,
+    at least 6 mm above the floor; then at three quarters in any direction, tipping it over) must be clear of
+    everything from 8 cm above down to the start (jaws closing across or along the push), and the hand must stay
+    clear of the cell over the push (`push_m`, else half of it).
+    `floor_z`: the bin floor's height, m. Returns the push, or None when no perceived object can be pushed."""
+    targets = list(plan.targets)
+    if not targets:
+        return None
+    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
+    world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
+    world.set_arm(arm)
+    world.set_tool(cell.tool)
+    world.update()
+    if cell.bin is None:
+        raise InputError("planning a push needs a cell with a bin")
+    tip = float(getattr(cell.tool, "finger_depth_m", 0.0) or hand.tip_beyond_tcp_m)
+    half_width = hand.finger_width_m / 2.0
+    bin_xy = np.asarray(cell.bin.world_from_bin, dtype=np.float64)[:2, 3]
+    geo = []
+    for t in targets:
+        verts = np.asarray(t.mesh.vertices, dtype=np.float64) @ t.world_from_object[:3, :3].T  # type: ignore[attr-defined]
+        verts = verts + t.world_from_object[:3, 3]
+        geo.append((verts, verts.mean(axis=0)))
+    order = sorted(range(len(targets)), key=lambda k: -float(geo[k][0][:, 2].max()))
+    angles = np.arange(8) * (np.pi / 4.0)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(8)])
+    for k in order:
+        verts, c = geo[k]
+        pref = bin_xy - c[:2]
+        pref = pref / max(float(np.linalg.norm(pref)), 1e-9)
+        for j, (_, cj) in enumerate(geo):
+            d = c[:2] - cj[:2]
+            dist = float(np.linalg.norm(d))
+            if j != k and 1e-6 < dist < 0.12:
+                pref = pref + d / dist
+        norm = max(float(np.linalg.norm(pref)), 1e-9)
+        ranked = [
+            m for m in sorted(range(8), key=lambda m: -float(dirs[m, :2] @ pref)) if dirs[m, :2] @ pref > -0.2 * norm
+        ]
+        low, high = float(verts[:, 2].min()), float(verts[:, 2].max())
+        # jaw tips at a third of the part's height (slide it), else at three quarters (tip it over)
+        heights = [max(floor_z + 0.006, low + (high - low) * f) for f in (1.0 / 3.0, 0.75)]
+        everywhere = sorted(range(8), key=lambda m: -float(dirs[m, :2] @ pref))  # tipping over: any way it falls
+        tries = [(m, heights[0]) for m in ranked] + [(m, heights[1]) for m in everywhere]
+        for (m, tip_z), across in itertools.product(tries, (True, False)):
+            d = dirs[m]
+            back = float(c @ d - (verts @ d).min())
+            # jaws closing across the push (a 4 cm wide pusher) or along it (the palm's long side along the push)
+            x = np.array([-d[1], d[0], 0.0]) if across else d.copy()
+            reach = half_width if across else hand.finger_thickness_m
+            z = np.array([0.0, 0.0, -1.0])
+            start = np.eye(4)
+            start[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+            start[:3, 3] = [*(c[:2] - d[:2] * (back + reach + 0.01)), tip_z + tip]
+            descent = [start.copy() for _ in range(4)]
+            for n, lift in enumerate((0.0, 0.02, 0.05, 0.08)):
+                descent[n][2, 3] += lift
+            if any(world.check_tool(p, 0.0) is not None for p in descent):
+                continue
+            for dist in (push_m, push_m / 2.0):
+                along = []
+                for s in np.linspace(0.0, dist, 6)[1:]:
+                    p = start.copy()
+                    p[:3, 3] += d * s
+                    along.append(p)
+                if all(world.check_tool(p, 0.0, skip=("object", "clutter")) is None for p in along):
+                    return Push(start, d * dist)
+    return None
