@@ -1,8 +1,9 @@
 """Kinematics figures: FK agreement (pinocchio MJCF / MuJoCo / Robot vs the DH table), analytic IK speed and
 success with round-trip error on random reachable poses, and mink differential-IK success and time.
 
-Run: `nice -n 10 .venv/bin/python benchmarks/bench_kinematics.py [--poses 10000] [--mink-poses 100]`.
-Timings are process CPU time (time.process_time: robust on a shared machine), medians over repeats, one thread.
+Run: `nice -n 10 .venv/bin/python benchmarks/bench_kinematics.py [--poses 10000] [--mink-poses 100]`
+(`--only one-pose` for the one-pose IK section alone). Timings are process CPU time (time.process_time: robust on
+a shared machine), medians over repeats, one thread; the one-pose section times each call (perf_counter_ns).
 """
 
 from __future__ import annotations
@@ -139,6 +140,42 @@ def _ik_row(name: str, n: int) -> None:
     )
 
 
+def one_pose_ik(n: int, repeats: int) -> None:
+    """Per-call time of the one-pose IK variants on the UR5e: median and p95 over n poses x repeats."""
+    robot = Robot.load("ur5e")
+    rng = np.random.default_rng(4)
+    qs = _random_q(robot, n, rng)
+    poses = robot.fk_batch(qs)
+    lists = [p.tolist() for p in poses]
+    near_opts, all_opts = IKOptions(all_branches=False), IKOptions()
+    lengths = robot._lengths
+    variants: dict[str, Callable[[int], object]] = {
+        "closed form, plain Python (ik_single: 8 principal solutions, no limits)": lambda i: ik_single(
+            lengths, lists[i]
+        ),
+        "robot.ik, nearest copy per solution, sorted": lambda i: robot.ik(poses[i], qs[i], near_opts),
+        "robot.ik, every +-2 pi copy in the limits (256), sorted": lambda i: robot.ik(poses[i], qs[i], all_opts),
+        "robot.ik_or_raise": lambda i: robot.ik_or_raise(poses[i], qs[i]),
+        "Python path (robot._ik_python), nearest copy": lambda i: robot._ik_python(poses[i], qs[i], near_opts),
+        "Python path (robot._ik_python), every copy": lambda i: robot._ik_python(poses[i], qs[i], all_opts),
+    }
+    for fn in variants.values():
+        fn(0)  # loads the compiled kernel from numba's cache (or compiles it once)
+    print(f"\n## One-pose IK (ur5e, {n} random reachable poses x {repeats} repeats, per call)")
+    print(f"load average {' / '.join(f'{v:.2f}' for v in os.getloadavg())} (1 / 5 / 15 min)")
+    print("| variant | median us | p95 us |")
+    print("|---|---|---|")
+    for label, fn in variants.items():
+        times = []
+        for _ in range(repeats):
+            for i in range(n):
+                t0 = time.perf_counter_ns()
+                fn(i)
+                times.append(time.perf_counter_ns() - t0)
+        arr = np.array(times, dtype=np.float64) / 1e3
+        print(f"| {label} | {np.median(arr):.1f} | {np.percentile(arr, 95):.1f} |")
+
+
 def mink_ik(n: int) -> None:
     print(f"\n## mink differential IK (ur5e, {n} random reachable targets, to 0.1 mm / 0.1 deg, <= 300 iterations)")
     print("| start | ConfigurationLimit | success | median ms | median iterations | us/iteration |")
@@ -200,8 +237,14 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=10_000, help="random poses per robot for analytic IK")
     parser.add_argument("--fk-configs", type=int, default=1_000, help="random configurations per robot for FK")
     parser.add_argument("--mink-poses", type=int, default=100, help="targets for mink differential IK")
+    parser.add_argument("--one-pose-poses", type=int, default=2_000, help="poses of the one-pose IK section")
+    parser.add_argument("--repeats", type=int, default=5, help="repeats of the one-pose IK section")
+    parser.add_argument("--only", choices=("one-pose",), help="run one section only")
     args = parser.parse_args()
     print("# bench_kinematics")
+    one_pose_ik(args.one_pose_poses, args.repeats)
+    if args.only:
+        return
     fk_agreement(args.fk_configs)
     analytic_ik(args.poses)
     mink_ik(args.mink_poses)

@@ -245,3 +245,89 @@ def test_round_trip_on_singular_and_boundary_configurations(name: str) -> None:
         sols = robot.ik(target, q, IKOptions(all_branches=False))
         assert sols.shape[0] >= 1, q
         assert np.abs(robot.fk_batch(sols) - target).max() <= 1e-9, q
+
+
+def _wrap(q: np.ndarray) -> np.ndarray:
+    return q - 2 * math.pi * np.round(q / (2 * math.pi))
+
+
+@pytest.mark.parametrize("name", ROBOT_NAMES)
+def test_single_pose_path_equals_the_batched_path(name: str) -> None:
+    """robot.ik (compiled one-pose path) against ik_batch + an independent numpy expansion to each joint's
+    nearest in-limit copy, sorted by distance: same solutions, same order, to 1e-12 rad."""
+    robot = ROBOTS[name]
+    rng = np.random.default_rng(11)
+    lower, upper = robot.joint_limits
+    qs = rng.uniform(np.maximum(lower, -2 * math.pi), np.minimum(upper, 2 * math.pi), (300, 6))
+    poses = robot.fk_batch(qs)
+    q8, valid = robot.ik_batch(poses, q6_default=0.0)
+    near_all = qs + rng.normal(0.0, 0.7, qs.shape)
+    near_opts = IKOptions(all_branches=False)
+    d4 = robot.params.d[3]
+    compared = 0
+    for i in range(len(qs)):
+        principal = q8[i][valid[i]]
+        shoulder = math.acos(min(1.0, d4 / np.hypot(*(poses[i, :2, 3] - robot.params.d[5] * poses[i, :2, 2]))))
+        if shoulder < 1e-4 or (np.abs(np.sin(principal[:, [2, 4]])) < 1e-4).any():
+            continue  # near a singularity the one-pose path Newton-polishes (differences up to ~1e-8 rad)
+        near = near_all[i]
+        q6 = robot.ik_batch(poses[i][None], q6_default=float(near[5]))[0][0][valid[i]]
+        cand = np.stack([q6, q6 - np.copysign(2 * math.pi, q6)])  # (2, k, 6): principal and its other copy
+        unlimited = ~np.isfinite(upper)
+        turns = np.round((near[unlimited] - q6[:, unlimited]) / (2 * math.pi))
+        cand[:, :, unlimited] = q6[:, unlimited] + 2 * math.pi * turns
+        in_limits = np.abs(cand) <= upper
+        dist = np.where(in_limits, np.abs(cand - near), np.inf)
+        pick = np.take_along_axis(cand, np.argmin(dist, axis=0)[None], axis=0)[0]
+        expected = pick[np.all(np.abs(pick) <= upper, axis=1)]
+        expected = expected[np.argsort(((expected - near) ** 2).sum(axis=1), kind="stable")]
+        single = robot.ik(poses[i], near, near_opts)
+        assert single.shape == expected.shape
+        np.testing.assert_allclose(single, expected, rtol=0, atol=1e-12)
+        every = robot.ik(poses[i], near)  # every +-2 pi copy: the same principal solutions, nearest first
+        assert every.shape[0] >= single.shape[0]
+        np.testing.assert_allclose(every[0], single[0], rtol=0, atol=1e-12)
+        got = {tuple(np.round(_wrap(s), 9)) for s in every}
+        assert got == {tuple(np.round(_wrap(s), 9)) for s in expected}
+        compared += 1
+    assert compared > 250
+
+
+@pytest.mark.parametrize("name", ROBOT_NAMES)
+def test_compiled_one_pose_path_equals_the_python_path(name: str) -> None:
+    """Same shapes and values (1e-12 rad) as Robot._ik_python on random, wrist-, elbow-singular and boundary
+    poses, with and without q_near, nearest copies and every copy (singular poses fall back to the Python path)."""
+    robot = ROBOTS[name]
+    rng = np.random.default_rng(12)
+    lower, upper = robot.joint_limits
+    qs = rng.uniform(np.maximum(lower, -2 * math.pi), np.minimum(upper, 2 * math.pi), (120, 6))
+    qs[:20, 4] = rng.choice([0.0, math.pi, 1e-6], 20)  # aligned wrist (and just beside it)
+    qs[20:40, 2] = rng.choice([0.0, 2e-5], 20)  # stretched elbow
+    poses = robot.fk_batch(qs)
+    for i in range(len(qs)):
+        for opts in (IKOptions(), IKOptions(all_branches=False)):
+            for near in (qs[i] + rng.normal(0.0, 0.5, 6), None):
+                fast = robot.ik(poses[i], near, opts)
+                slow = robot._ik_python(poses[i], near, opts)
+                assert fast.shape == slow.shape
+                np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12)
+    far = np.eye(4)
+    far[:3, 3] = (3.0, 0.0, 0.3)
+    assert robot.ik(far).shape == (0, 6) == robot._ik_python(far, None, IKOptions()).shape
+
+
+def test_one_pose_path_refuses_bad_input() -> None:
+    robot = ROBOTS["ur5e"]
+    target = robot.fk(np.array([0.3, -1.2, 1.4, -1.7, -1.5, 0.2]))
+    sheared = target + np.diag([0.1, 0.0, 0.0, 0.0])
+    for bad_pose in (np.full((4, 4), np.nan), target[:3], sheared):
+        with pytest.raises(InputError):
+            robot.ik(bad_pose)
+    shifted = target.copy()
+    shifted[3, 3] = 2.0  # last row not [0, 0, 0, 1]
+    with pytest.raises(InputError):
+        robot.ik(shifted)
+    for bad_near in ([0.0] * 5, [0.0, 0.0, 0.0, 0.0, 0.0, math.inf]):
+        with pytest.raises(InputError):
+            robot.ik(target, bad_near)
+    assert robot.ik(target.tolist(), [0.0] * 6).shape[0] > 0  # nested lists are accepted

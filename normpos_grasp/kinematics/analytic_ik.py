@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from normpos_grasp.kinematics.ur_params import URParams
 from normpos_grasp.typing import BoolArray, FloatArray
@@ -181,3 +182,186 @@ def ik_batch(
     q = q5d.reshape(n, 8, 6)
     q[~valid] = np.nan
     return q, valid
+
+
+# -- compiled single-pose solve (nominal model): closed form, +-2 pi copies inside the limits, sorted ------------------
+
+FAST_OK, FAST_POLISH, FAST_BAD_POSE, FAST_BAD_NEAR = 0, 1, 2, 3
+SINGULAR_NEAR = 1e-5  # |sin| (or shoulder angle, rad) below which closed-form solutions get Newton-polished
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _remainder_2pi(x: float) -> float:
+    """math.remainder(x, 2 pi) (numba has no math.remainder): exact for |x| <= 4 pi (Sterbenz), ties to even."""
+    half = 0.5 * _TWO_PI
+    if -half <= x <= half:
+        return x
+    n = np.rint(x / _TWO_PI)
+    r = x - n * _TWO_PI
+    if r > half or (r == half and n % 2.0 != 0.0):
+        r -= _TWO_PI
+    elif r < -half or (r == -half and n % 2.0 != 0.0):
+        r += _TWO_PI
+    return r
+
+
+@njit(cache=True, nogil=True)
+def ik_solve_nominal(
+    lengths: FloatArray, pose: FloatArray, near: FloatArray, upper: FloatArray, all_branches: bool
+) -> tuple[FloatArray, int]:  # pragma: no cover - compiled; its Python twin is Robot._ik_python
+    """`Robot.ik` of the nominal model for one pose, compiled: lengths (6,) = dh_lengths, pose (4, 4)
+    base_from_flange, near (6,) radians (zeros for none), upper (6,) symmetric position limits with every
+    finite limit below 3 pi (inf: unlimited).
+
+    Returns (q (k, 6), status). FAST_OK: q are the solutions inside the limits sorted by squared joint distance
+    to `near` (stable, in the order of the Python path), every +-2 pi copy when all_branches, else each joint's
+    nearest copy. FAST_POLISH: a solution lies within 1e-5 of a shoulder, elbow or wrist singularity (the
+    caller Newton-polishes); FAST_BAD_POSE / FAST_BAD_NEAR: non-finite or improper input (the caller raises).
+    """
+    empty = np.empty((0, 6))
+    for i in range(4):
+        for j in range(4):
+            if not math.isfinite(pose[i, j]):
+                return empty, FAST_BAD_POSE
+    for j in range(6):
+        if not math.isfinite(near[j]):
+            return empty, FAST_BAD_NEAR
+    nx, ox, ax, px = pose[0, 0], pose[0, 1], pose[0, 2], pose[0, 3]
+    ny, oy, ay, py = pose[1, 0], pose[1, 1], pose[1, 2], pose[1, 3]
+    nz, oz, az, pz = pose[2, 0], pose[2, 1], pose[2, 2], pose[2, 3]
+    err = max(
+        abs(nx * nx + ny * ny + nz * nz - 1.0),
+        abs(ox * ox + oy * oy + oz * oz - 1.0),
+        abs(nx * ox + ny * oy + nz * oz),
+        abs(ny * oz - nz * oy - ax),
+        abs(nz * ox - nx * oz - ay),
+        abs(nx * oy - ny * ox - az),
+    )
+    if err > 1e-6 or pose[3, 0] != 0.0 or pose[3, 1] != 0.0 or pose[3, 2] != 0.0 or pose[3, 3] != 1.0:
+        return empty, FAST_BAD_POSE
+    d1, a2, a3, d4, d5, d6 = lengths[0], lengths[1], lengths[2], lengths[3], lengths[4], lengths[5]
+    q6_default = near[5]
+    principal = np.empty((8, 6))
+    k = 0
+    p05x, p05y = px - d6 * ax, py - d6 * ay
+    r = math.hypot(p05x, p05y)
+    if r <= 0.0 or d4 / r > 1.0 + ACOS_SLACK or d4 / r < -1.0 - ACOS_SLACK:
+        return empty, FAST_OK  # out of reach
+    phi = math.acos(min(1.0, max(-1.0, d4 / r)))
+    polish = math.acos(min(1.0, d4 / r)) < SINGULAR_NEAR
+    base = math.atan2(p05x, -p05y)
+    inv_a2a3 = 1.0 / (2.0 * a2 * a3)
+    aa = a2 * a2 + a3 * a3
+    hi, lo = 1.0 + ACOS_SLACK, -1.0 - ACOS_SLACK
+    pz_ = pz - d1 - d6 * az
+    for si in range(2):
+        t1 = _remainder_2pi(base + phi if si == 0 else base - phi)
+        c1, s1 = math.cos(t1), math.sin(t1)
+        c5 = (px * s1 - py * c1 - d4) / d6
+        if c5 > hi or c5 < lo:
+            continue
+        c5 = min(1.0, max(-1.0, c5))
+        t5a = math.acos(c5)
+        s5a = math.sqrt(1.0 - c5 * c5)
+        n_c = nx * c1 + ny * s1
+        o_c = ox * c1 + oy * s1
+        a_c = ax * c1 + ay * s1
+        num6 = oy * c1 - ox * s1
+        den6 = nx * s1 - ny * c1
+        pxy = px * c1 + py * s1 - d6 * a_c
+        for wi in range(2):
+            t5, s5 = (t5a, s5a) if wi == 0 else (-t5a, -s5a)
+            if s5a < SINGULAR_SIN:
+                t6 = q6_default
+            else:
+                t6 = math.atan2(num6, den6) if wi == 0 else math.atan2(-num6, -den6)
+            c6, s6 = math.cos(t6), math.sin(t6)
+            x04x = -s5 * a_c - c5 * (s6 * o_c - c6 * n_c)
+            x04y = c5 * (nz * c6 - oz * s6) - az * s5
+            t234 = math.atan2(x04y, x04x)
+            p13x = d5 * (s6 * n_c + c6 * o_c) + pxy
+            p13y = pz_ + d5 * (oz * c6 + nz * s6)
+            c3 = (p13x * p13x + p13y * p13y - aa) * inv_a2a3
+            if c3 > hi or c3 < lo:
+                continue
+            c3 = min(1.0, max(-1.0, c3))
+            t3a = math.acos(c3)
+            s3a = math.sqrt(1.0 - c3 * c3)
+            aa_ = a2 + a3 * c3
+            for ei in range(2):
+                t3, bb = (t3a, a3 * s3a) if ei == 0 else (-t3a, -a3 * s3a)
+                t2 = math.atan2(aa_ * p13y - bb * p13x, aa_ * p13x + bb * p13y)
+                t4 = _remainder_2pi(t234 - t2 - t3)
+                if abs(math.sin(t3)) < SINGULAR_NEAR or abs(math.sin(t5)) < SINGULAR_NEAR:
+                    polish = True
+                principal[k, 0], principal[k, 1], principal[k, 2] = t1, t2, t3
+                principal[k, 3], principal[k, 4], principal[k, 5] = t4, t5, t6
+                k += 1
+    if k > 0 and polish:
+        return empty, FAST_POLISH
+    # branch joints: finite limits above pi (one extra copy each, limits < 3 pi); unlimited joints go near `near`
+    jj = np.empty(6, dtype=np.int64)
+    m = 0
+    for j in range(6):
+        if math.isfinite(upper[j]) and upper[j] > math.pi:
+            jj[m] = j
+            m += 1
+    n_bits = 1 << m if all_branches else 1
+    rows = np.empty((k * n_bits, 6))
+    dist = np.empty(k * n_bits)
+    n = 0
+    alt = np.empty(6)
+    for s in range(k):
+        q = principal[s].copy()
+        ok = True
+        for j in range(6):
+            if not math.isfinite(upper[j]):
+                q[j] += _TWO_PI * np.rint((near[j] - q[j]) / _TWO_PI)
+            elif abs(q[j]) > upper[j]:
+                ok = False
+        if all_branches:
+            if not ok:
+                continue
+            for b in range(m):
+                j = jj[b]
+                alt[b] = q[j] - math.copysign(_TWO_PI, q[j])
+            for c in range(n_bits):  # itertools.product order: the first branch joint is the top bit
+                valid = True
+                for b in range(m):
+                    if (c >> (m - 1 - b)) & 1 and abs(alt[b]) > upper[jj[b]]:
+                        valid = False
+                        break
+                if not valid:
+                    continue
+                rows[n] = q
+                for b in range(m):
+                    if (c >> (m - 1 - b)) & 1:
+                        rows[n, jj[b]] = alt[b]
+                n += 1
+        else:
+            ok = True
+            for j in range(6):
+                v, lim, rj = principal[s, j], upper[j], near[j]
+                if not math.isfinite(lim):
+                    v = q[j]
+                elif lim > math.pi:
+                    a = v - math.copysign(_TWO_PI, v)
+                    if abs(a) <= lim and abs(a - rj) < abs(v - rj):
+                        v = a
+                if abs(v) > lim:
+                    ok = False
+                    break
+                rows[n, j] = v
+            if ok:
+                n += 1
+    for i in range(n):
+        acc = 0.0
+        for j in range(6):
+            e = rows[i, j] - near[j]
+            acc += e * e
+        dist[i] = acc
+    order = np.argsort(dist[:n], kind="mergesort")
+    out = np.empty((n, 6))
+    for i in range(n):
+        out[i] = rows[order[i]]
+    return out, FAST_OK

@@ -20,7 +20,15 @@ import numpy as np
 import pinocchio as pin
 
 from normpos_grasp.errors import InputError, NoIKSolution, RobotModelError
-from normpos_grasp.kinematics.analytic_ik import ACOS_SLACK, dh_lengths, ik_batch, ik_single
+from normpos_grasp.kinematics.analytic_ik import (
+    ACOS_SLACK,
+    FAST_OK,
+    SINGULAR_NEAR,
+    dh_lengths,
+    ik_batch,
+    ik_single,
+    ik_solve_nominal,
+)
 from normpos_grasp.kinematics.dh import DHCalibration, DHChain
 from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.mjcf import arm_mjcf
@@ -37,7 +45,9 @@ logger = logging.getLogger(__name__)
 ROBOT_NAMES = ("ur3e", "ur5e", "ur10e", "ur16e", "ur20", "ur30")
 _TWO_PI = 2.0 * math.pi
 _CALIBRATED_SLACK = 0.05  # acos clamp for seeds of a calibrated arm (targets just outside the nominal workspace)
-_SINGULAR_NEAR = 1e-5  # |sin| (or shoulder angle, rad) below which closed-form solutions get Newton-polished
+_SINGULAR_NEAR = SINGULAR_NEAR
+_ZEROS6 = np.zeros(6)
+_ZEROS6.setflags(write=False)
 
 
 @dataclass(frozen=True)
@@ -55,6 +65,9 @@ class IKOptions:
     newton_tol: float = 1e-12
     dedupe_tol: float = 1e-9
     all_branches: bool = True
+
+
+_DEFAULT_IK = IKOptions()
 
 
 @dataclass(frozen=True)
@@ -140,6 +153,7 @@ class Robot:
         self.calibration = calibration
         self.chain = DHChain.nominal(params, calibration)
         self._lengths = dh_lengths(params)
+        self._lengths_arr = np.array(self._lengths, dtype=np.float64)
         self._pin = _PinState(build_pinocchio_model(params, self.chain))
         limits = np.array(params.position_limit)
         self._lower, self._upper = -limits, limits
@@ -159,6 +173,7 @@ class Robot:
             k = int(math.ceil(lim / _TWO_PI)) if math.isfinite(lim) else 0
             per_joint.append([i * _TWO_PI for i in range(-k, k + 1) if abs(i) * _TWO_PI < lim + math.pi])
         self._branch_offsets = np.array(list(itertools.product(*per_joint)))  # (C, 6), general path
+        self._fast_ik = calibration is None and self._binary  # the compiled one-pose path applies
 
     @staticmethod
     def load(name: str, calibration: DHCalibration | str | Path | None = None) -> Robot:
@@ -454,8 +469,28 @@ class Robot:
     ) -> FloatArray:
         """All IK solutions (k, 6) of a base_from_flange pose inside the joint limits, sorted by Euclidean
         joint distance to q_near (6,) (to zeros when None). Up to 8 analytic solutions, each with its +-2 pi
-        copies (options.all_branches). Empty (0, 6) when unreachable; `ik_or_raise` says why."""
-        opts = options or IKOptions()
+        copies (options.all_branches). Empty (0, 6) when unreachable; `ik_or_raise` says why.
+
+        The nominal model away from singularities takes a compiled path (`analytic_ik.ik_solve_nominal`, a few
+        microseconds); a calibrated model, and poses within 1e-5 of a singularity (Newton-polished), take
+        `_ik_python`. Both give the same solutions in the same order."""
+        opts = options or _DEFAULT_IK
+        if self._fast_ik:
+            pose = np.asarray(base_from_flange, dtype=np.float64)
+            if q_near is None:
+                near = _ZEROS6
+            else:
+                near = np.asarray(q_near, dtype=np.float64)
+                if near.shape != (6,):
+                    near = self._q(q_near)  # raises the detailed InputError
+            if pose.shape == (4, 4):
+                sols, status = ik_solve_nominal(self._lengths_arr, pose, near, self._upper, opts.all_branches)
+                if status == FAST_OK:
+                    return sols
+        return self._ik_python(base_from_flange, q_near, opts)
+
+    def _ik_python(self, base_from_flange: ArrayLike, q_near: ArrayLike | None, opts: IKOptions) -> FloatArray:
+        """`ik` in Python and numpy (every model and pose; Newton polish near singularities)."""
         pose = self._check_target(base_from_flange)
         near = None if q_near is None else self._q(q_near)
         q6 = 0.0 if near is None else float(near[5])
@@ -471,7 +506,12 @@ class Robot:
     ) -> FloatArray:
         """Like `ik`, without solutions within options.wrist_singularity_tol of the wrist singularity, and
         raising NoIKSolution(reason=out_of_reach | joint_limits | wrist_singularity | not_converged)."""
-        opts = options or IKOptions()
+        opts = options or _DEFAULT_IK
+        if self._fast_ik:
+            sols = self.ik(base_from_flange, q_near, opts)
+            good = np.abs(np.sin(sols[:, 4])) >= opts.wrist_singularity_tol
+            if good.any():
+                return sols[good]  # sorted by distance; the failure reasons come from the path below
         pose = self._check_target(base_from_flange)
         near = None if q_near is None else self._q(q_near)
         principal, reason = self._principal(pose, 0.0 if near is None else float(near[5]), opts, near)
