@@ -36,9 +36,16 @@ def campaign(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Campaign]:
         yield c
 
 
+def _why(r: CaseResult) -> str:
+    return (
+        f"{r.case}: exit {r.exit_code}, rest {r.rest_s}, stop {r.stop_cmd} at {r.stop_cmd_s}, send gap "
+        f"{r.send_gap_s:.3f}, moved {r.moved_after_fault_rad}, stderr {r.stderr}"
+    )
+
+
 def _assert_clean_exit(r: CaseResult) -> None:
-    assert not r.hung and not r.aborted, r.to_dict()
-    assert r.exit_code == r.expected_exit, r.to_dict()
+    assert not r.hung and not r.aborted, _why(r)
+    assert r.exit_code == r.expected_exit, _why(r)
     assert not r.traceback and len(r.error_lines) == 1, r.stderr
     assert r.exit_after_fault_s is not None and r.exit_after_fault_s < 60.0  # includes the CLI start (imports)
 
@@ -48,11 +55,11 @@ def _assert_clean_exit(r: CaseResult) -> None:
 def test_signal_mid_move_stops_the_arm_before_disconnecting(campaign: Campaign, case: str) -> None:
     r = campaign.run(case)
     _assert_clean_exit(r)
-    assert r.stop_cmd in ("stopJ", "stopL"), r.to_dict()  # a stop command, not just a disconnect
+    assert r.stop_cmd in ("stopJ", "stopL"), _why(r)  # a stop command, not just a disconnect
     assert r.stop_cmd_s is not None and r.stop_cmd_s < SLACK_S
-    assert r.rest_s is not None and r.rest_s < SLACK_S, r.to_dict()
+    assert r.rest_s is not None and r.rest_s < SLACK_S + r.send_gap_s, _why(r)
     # RTDE: still (qd ~ 0, q constant) soon after the signal, and for the rest of the 0.6 s window
-    assert r.rtde_still_s is not None and r.rtde_still_s < SLACK_S + 0.05, r.to_dict()
+    assert r.rtde_still_s is not None and r.rtde_still_s < SLACK_S + 0.05 + r.send_gap_s, _why(r)
     assert r.drift_after_still_rad is not None and r.drift_after_still_rad < 1e-4
     assert r.moved_after_fault_rad is not None and r.moved_after_fault_rad < 0.1  # issue 18 measured 1.18 rad
     assert r.motion_after_stop == 0
@@ -63,9 +70,9 @@ def test_signal_mid_move_stops_the_arm_before_disconnecting(campaign: Campaign, 
 def test_signal_mid_stream_stops_the_arm(campaign: Campaign, case: str) -> None:
     r = campaign.run(case)
     _assert_clean_exit(r)
-    assert r.stop_cmd in ("servoStop", "stopJ"), r.to_dict()
-    assert r.rest_s is not None and r.rest_s < SLACK_S, r.to_dict()
-    assert r.rtde_still_s is not None and r.rtde_still_s < SLACK_S + 0.05
+    assert r.stop_cmd in ("servoStop", "stopJ"), _why(r)
+    assert r.rest_s is not None and r.rest_s < SLACK_S + r.send_gap_s, _why(r)
+    assert r.rtde_still_s is not None and r.rtde_still_s < SLACK_S + 0.05 + r.send_gap_s
     assert r.motion_after_stop == 0  # no servoJ sample after the stop
 
 
@@ -92,7 +99,7 @@ def test_link_faults_become_one_typed_line(campaign: Campaign, case: str) -> Non
     _assert_clean_exit(r)  # exit 2 within seconds: no SIGABRT from ur_rtde, no hang
     assert "link" in r.error_lines[0] or "state" in r.error_lines[0] or "ur_rtde" in r.error_lines[0]
     if case != "killed_controller":
-        assert r.rest_s is not None and r.rest_s < r.stop_budget_s + SLACK_S, r.to_dict()
+        assert r.rest_s is not None and r.rest_s < r.stop_budget_s + SLACK_S, _why(r)
         assert r.motion_after_stop == 0
 
 
@@ -173,6 +180,83 @@ def test_missed_grip_stops_the_pick(tmp_path: Path) -> None:
         report = execute_plan(drv, plan, lim, dry_run=False)
         assert report.status == "grip_failed" and report.grip_detected is False
         assert np.max(np.abs(drv.state().q - q_grasp)) < 1e-3  # stopped at the grasp: never went on to the place
+    finally:
+        drv.disconnect()
+        drv.shutdown()
+
+
+def test_supervised_driver_survives_a_dropped_link_and_resumes(tmp_path: Path) -> None:
+    """The client runs in SupervisedRtdeDriver's child: a hard drop of every RTDE link is a latched ConnectionLost in
+    this process within the stale-state time (this process never aborts), the arm is stopped and not moved again, and
+    resume() starts a fresh client that drives the arm (issue 18: 3 of 3 resume() calls aborted before)."""
+    import threading
+    import time
+
+    from normpos_grasp.errors import ConnectionLost, DriverFault
+    from normpos_grasp.execution import SupervisedRtdeDriver
+
+    host = HOST.rsplit(".", 1)[0] + ".23"
+    with EmulatorProcess(host, "ur5e", ready_timeout_s=60.0, log_path=tmp_path / "emu.log") as emu:
+        drv = SupervisedRtdeDriver(host, SafetyLimits.for_model("ur5e"))
+        drv.connect()
+        try:
+            for round_ in range(3):
+                start = drv.state().q
+                goal = start + np.array([1.0 if round_ % 2 == 0 else -1.0, 0, 0, 0, 0, 0])
+                t_drop: list[float] = []
+
+                def drop(marks: list[float] = t_drop) -> None:
+                    marks.append(time.monotonic())
+                    emu.emu("drop")
+
+                threading.Timer(0.5, drop).start()
+                with pytest.raises(ConnectionLost):
+                    drv.move_joints([goal], 0.6, 1.0)
+                assert time.monotonic() - t_drop[0] < 2.0
+                with pytest.raises(DriverFault, match="resume"):
+                    drv.move_joints([start], 0.6, 1.0)  # latched: nothing sent
+                time.sleep(0.3)
+                info = dict(p.split("=", 1) for p in emu.emu("since", f"{t_drop[0]:.6f}").split()[2:])
+                assert info["moving"] == "False" and info["motion_after_stop"] == "0"
+                drv.resume()
+                st = drv.move_joints([start], 2.0, 4.0)
+                assert np.max(np.abs(st.q - start)) < 1e-3
+        finally:
+            drv.disconnect()
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_mid_move_stops_the_sim_arm_and_latches(sig: str) -> None:
+    """In-process: under stop_signals() a signal mid-move_joints leaves through the driver's exception path, which
+    stops the arm (halt_decel) before the exception reaches the caller, and latches a fault."""
+    import signal
+    import threading
+    import time
+
+    from normpos_grasp.errors import DriverFault, TerminationRequested
+    from normpos_grasp.execution import exit_code, stop_signals
+
+    lim = SafetyLimits.for_model("ur5e")
+    drv = SimDriver(lim, q_home=HOME)
+    drv.connect()
+    try:
+        signum = getattr(signal, sig)
+        with stop_signals():
+            threading.Timer(0.6, os.kill, (os.getpid(), signum)).start()
+            with pytest.raises(KeyboardInterrupt) as info:
+                drv.move_joints([HOME + np.array([1.2, 0, 0, 0, 0, 0])], 0.8, 1.2)
+        assert isinstance(info.value, TerminationRequested) == (sig == "SIGTERM")
+        assert exit_code(info.value) == (143 if sig == "SIGTERM" else 130)
+        st = drv.state()
+        assert np.max(np.abs(st.qd)) < 1e-6  # at rest when the exception arrives (stopJ waits for rest)
+        q = st.q.copy()
+        time.sleep(0.2)
+        assert np.max(np.abs(drv.state().q - q)) < 1e-9
+        assert 0.05 < abs(q[0] - HOME[0]) < 1.0  # stopped mid-move
+        assert drv.fault is not None
+        assert ("SIGTERM" if sig == "SIGTERM" else "KeyboardInterrupt") in str(drv.fault)
+        with pytest.raises(DriverFault, match="resume"):
+            drv.move_joints([HOME], 0.8, 1.2)
     finally:
         drv.disconnect()
         drv.shutdown()

@@ -229,9 +229,16 @@ class SimDriver(GuardedDriver):
                 self.arm.stop(self.options.stop_decel)
 
     def _backend_stop(self, decel: float) -> None:
+        """Decelerate and wait until the arm rests (as ur_rtde's stopJ(a, asynchronous=False)), at most 5 s."""
         with self._lock:
             if self.arm.moving:
                 self.arm.stop(decel)
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            with self._lock:
+                if not self.arm.moving:
+                    return
+            time.sleep(0.002)
 
     def _backend_link_lost(self) -> None:
         # the simulated controller is reachable by the same path; a real one would get a dashboard stop
