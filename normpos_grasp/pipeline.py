@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.perception.change import unchanged
 from normpos_grasp.planning.plan import PlanOptions, plan_pick
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.normpos import NormPosition
@@ -27,12 +28,35 @@ SEGMENTER_KINDS = ("model", "depth")
 
 
 @dataclass(frozen=True)
+class ReuseOptions:
+    """When `perceive` keeps an accepted fit of the previous frame instead of fitting the object again: its new mask
+    overlaps the old one by `min_iou` and the median depth under it (and under each half of it) changed by at most
+    `max_depth_change_m` metres (`perception.change.unchanged`). Only for a camera that did not move."""
+
+    min_iou: float = 0.95
+    max_depth_change_m: float = 0.0015
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_iou <= 1.0 or not self.max_depth_change_m > 0.0:
+            raise InputError(
+                f"reuse needs min_iou in (0, 1] and max_depth_change_m > 0, got {self.min_iou}, "
+                f"{self.max_depth_change_m}"
+            )
+
+
+@dataclass(frozen=True)
 class PipelineOptions:
-    """Settings of every stage; each keeps its own units (see the stage's *Options docstring)."""
+    """Settings of every stage; each keeps its own units (see the stage's *Options docstring).
+
+    fit_workers: threads fitting a frame's objects (`fit_many`); 1 in processes that already run one per core.
+    reuse: how `perceive(..., previous=...)` decides an object did not move.
+    """
 
     measure: MeasureOptions = field(default_factory=MeasureOptions)
     fit: FitOptions = field(default_factory=FitOptions)
     plan: PlanOptions = field(default_factory=PlanOptions)
+    fit_workers: int = 2
+    reuse: ReuseOptions = field(default_factory=ReuseOptions)
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,6 +64,7 @@ class FrameResult:
     """What the pipeline made of one frame; `plan` is None when planning was not asked for.
 
     timings_ms: wall time per stage ('segment', 'measure', 'fit', 'plan'), milliseconds.
+    reused_fits: fits kept from the previous frame (objects that did not move), the others were fitted anew.
     """
 
     frame: RGBDFrame
@@ -48,6 +73,7 @@ class FrameResult:
     fits: list[TemplateFit]
     plan: PickPlan | None
     timings_ms: dict[str, float]
+    reused_fits: int = 0
 
     @property
     def accepted_fits(self) -> list[TemplateFit]:
@@ -69,26 +95,56 @@ def make_segmenter(kind: str) -> Segmenter:
 
 def perceive(
     frame: RGBDFrame,
-    segmenter: Segmenter,
+    segmenter: Segmenter | None,
     library: Iterable[Template],
     options: PipelineOptions | None = None,
     instances: Sequence[Instance] | None = None,
+    previous: FrameResult | None = None,
 ) -> FrameResult:
-    """Segment (unless `instances` are given), measure and fit every object of `frame`; no planning."""
+    """Segment (unless `instances` are given), measure and fit every object of `frame`; no planning.
+
+    previous: the last frame's result from the same, unmoved camera: an object whose mask and depth did not change
+    since then keeps its accepted fit (`PipelineOptions.reuse`); everything else is fitted anew.
+    """
     opts = options or PipelineOptions()
     templates = list(library)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    found = list(instances) if instances is not None else segmenter.segment(frame)
+    if instances is not None:
+        found = list(instances)
+    elif segmenter is not None:
+        found = segmenter.segment(frame)
+    else:
+        raise InputError("perceive needs a segmenter or the frame's instances")
     timings["segment"] = _ms(t0)
     t0 = time.perf_counter()
     normpositions = measure_instances(frame, found, opts.measure)
     timings["measure"] = _ms(t0)
     t0 = time.perf_counter()
-    context = FitContext(frame.camera, frame.depth_m)
-    fits = fit_many(normpositions, templates, opts.fit, context)
+    kept = _unchanged_fits(frame, found, previous, opts.reuse) if previous is not None else {}
+    todo = [n for n in normpositions if n.instance_id not in kept]
+    fresh = iter(fit_many(todo, templates, opts.fit, FitContext(frame.camera, frame.depth_m), opts.fit_workers))
+    fits = [kept[n.instance_id] if n.instance_id in kept else next(fresh) for n in normpositions]
     timings["fit"] = _ms(t0)
-    return FrameResult(frame, found, normpositions, fits, None, timings)
+    return FrameResult(frame, found, normpositions, fits, None, timings, len(normpositions) - len(todo))
+
+
+def _unchanged_fits(
+    frame: RGBDFrame, instances: Sequence[Instance], previous: FrameResult, reuse: ReuseOptions
+) -> dict[int, TemplateFit]:
+    """Accepted fits of `previous` for the instances of `frame` that did not move, by new instance id; each old
+    fit is kept for at most one new instance."""
+    old_masks = {i.instance_id: i.mask for i in previous.instances}
+    old = [(old_masks[f.instance_id], f) for f in previous.fits if f.accepted and f.instance_id in old_masks]
+    depth = frame.depth_m
+    kept: dict[int, TemplateFit] = {}
+    for inst in instances:
+        for k, (old_mask, fit) in enumerate(old):
+            if unchanged(inst.mask, depth, old_mask, previous.frame.depth_m, reuse.min_iou, reuse.max_depth_change_m):
+                kept[inst.instance_id] = replace(fit, instance_id=inst.instance_id)
+                del old[k]
+                break
+    return kept
 
 
 def process_frame(

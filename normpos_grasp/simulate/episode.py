@@ -29,6 +29,9 @@ import numpy as np
 
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.geometry.transforms import make_pose, transform_points
+from normpos_grasp.measure.measure import MeasureOptions
+from normpos_grasp.perception.change import mask_iou
+from normpos_grasp.pipeline import FrameResult, PipelineOptions, ReuseOptions, perceive
 from normpos_grasp.planning.evaluate import EvaluationOptions
 from normpos_grasp.planning.push import PushHand, plan_push
 from normpos_grasp.records.template import Template
@@ -204,13 +207,6 @@ def _fit_error(fitted: FloatArray, true: FloatArray, samples: FloatArray) -> flo
     return float(np.mean(d))
 
 
-def _iou(a: np.ndarray, b: np.ndarray) -> float:
-    inter = int(np.count_nonzero(a & b))
-    if inter == 0:
-        return 0.0
-    return inter / float(np.count_nonzero(a | b))
-
-
 @dataclass(frozen=True, eq=False)
 class _Setup:
     """What every scene of a batch shares in one process (built once: the library's templates keep their prepared
@@ -269,33 +265,22 @@ def _setup(config: SimulationConfig) -> _Setup:
 
 @dataclass(frozen=True, eq=False)
 class _Perception:
-    """One captured frame and what the pipeline made of it."""
+    """One captured frame (with its ground truth) and what the pipeline made of it."""
 
-    frame: Any
-    instances: list[Any]
-    normpositions: list[Any]
-    fits: list[Any]
-    fitted: int
-    reused: int
+    frame: Any  # sim.dataset.SyntheticFrame
+    result: FrameResult
 
+    @property
+    def instances(self) -> list[Any]:
+        return self.result.instances
 
-def _changed(mask: np.ndarray, depth: FloatArray, old_mask: np.ndarray, old_depth: FloatArray, tol: float) -> bool:
-    """Change detection between two frames of a static camera over one instance: True unless the median depth
-    change over the overlap of both masks, and over each of its halves (left / right, top / bottom: a tilt raises
-    one half), stays within `tol` metres (medians are robust to the sensor's holes and edge outliers)."""
-    both = mask & old_mask & (depth > 0) & (old_depth > 0)
-    v, u = np.nonzero(both)
-    if len(u) < 40:
-        return True
-    diff = depth[v, u] - old_depth[v, u]
-    if abs(float(np.median(diff))) > tol:
-        return True
-    for coord in (u, v):
-        cut = np.median(coord)
-        for half in (coord < cut, coord >= cut):
-            if np.count_nonzero(half) >= 10 and abs(float(np.median(diff[half]))) > tol:
-                return True
-    return False
+    @property
+    def normpositions(self) -> list[Any]:
+        return self.result.normpositions
+
+    @property
+    def fits(self) -> list[Any]:
+        return self.result.fits
 
 
 def _perceive(
@@ -307,12 +292,10 @@ def _perceive(
     im_id: int,
     previous: _Perception | None,
 ) -> _Perception:
-    """Render the scene as it stands with sensor noise, segment, measure and fit (keeping the accepted fits of
-    instances the change detection finds unchanged since `previous`)."""
-    from normpos_grasp.measure.measure import MeasureOptions, measure_instances
+    """Render the scene as it stands with sensor noise, then the product's perception (`pipeline.perceive`:
+    segment, measure, fit), keeping the accepted fits of objects that did not move since `previous`."""
     from normpos_grasp.sim.dataset import render_frame
     from normpos_grasp.sim.render import make_renderer
-    from normpos_grasp.templates.fit import FitContext, fit_best
 
     camera = setup.camera
     renderer = make_renderer(layout, camera.width, camera.height, config.renderer)
@@ -320,36 +303,17 @@ def _perceive(
         frame = render_frame(layout, renderer, camera, setup.sensor, rng, scene_id=scene_index, im_id=im_id)
     finally:
         renderer.close()
-    if config.segmenter == "gt":
-        instances = list(frame.instances)
-    else:
-        instances = _segmenter(config.segmenter).segment(frame.frame)
-    normpositions = measure_instances(frame.frame, instances, MeasureOptions(skip_failed=True))
-    context = FitContext(frame.frame.camera, frame.frame.depth_m)
-    masks = {i.instance_id: i.mask for i in instances}
-    old: list[tuple[np.ndarray, Any]] = []
-    if previous is not None:
-        old_masks = {i.instance_id: i.mask for i in previous.instances}
-        old = [(old_masks[f.instance_id], f) for f in previous.fits if f.accepted and f.instance_id in old_masks]
-    depth = np.asarray(frame.frame.depth_m, dtype=np.float64)
-    fits = []
-    reused = 0
-    for np_ in normpositions:
-        mask = masks.get(np_.instance_id)
-        keep = None
-        if mask is not None and previous is not None:
-            for old_mask, fit in old:
-                if _iou(mask, old_mask) >= config.reuse_iou and not _changed(
-                    mask, depth, old_mask, previous.frame.frame.depth_m, config.reuse_depth_m
-                ):
-                    keep = fit
-                    break
-        if keep is not None:
-            fits.append(replace(keep, instance_id=np_.instance_id))
-            reused += 1
-        else:
-            fits.append(replace(fit_best(np_, list(setup.library), camera=context), instance_id=np_.instance_id))
-    return _Perception(frame, instances, normpositions, fits, len(fits) - reused, reused)
+    ideal = list(frame.instances) if config.segmenter == "gt" else None
+    segmenter = None if ideal is not None else _segmenter(config.segmenter)
+    options = PipelineOptions(
+        measure=MeasureOptions(skip_failed=True),
+        fit_workers=1,  # one scene per core already
+        reuse=ReuseOptions(config.reuse_iou, config.reuse_depth_m),
+    )
+    result = perceive(
+        frame.frame, segmenter, setup.library, options, ideal, previous.result if previous is not None else None
+    )
+    return _Perception(frame, result)
 
 
 def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
@@ -403,8 +367,8 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             seen = _perceive(setup, config, current, rng, scene_index, im_id, last)
             im_id += 1
             captures += 1
-            fitted += seen.fitted
-            reused += seen.reused
+            fitted += len(seen.fits) - seen.result.reused_fits
+            reused += seen.result.reused_fits
             plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options)
             if plan.status != "ok" and config.relaxed_plan:
                 relaxed = replace(plan_options, evaluation=config.relaxed_evaluation)
@@ -466,7 +430,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         cand = plan.chosen.candidate
         target = plan.targets[cand.target]
         inst = next((i for i in instances if i.instance_id == target.instance_id), None)
-        ious = [_iou(inst.mask, m) for m in frame.rendering.masks_visible] if inst is not None else []
+        ious = [mask_iou(inst.mask, m) for m in frame.rendering.masks_visible] if inst is not None else []
         k = int(np.argmax(ious)) if ious else -1
         matched = k >= 0 and ious[k] >= config.match_iou
         if k < 0 or ious[k] <= 0.0:
