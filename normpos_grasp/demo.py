@@ -25,7 +25,7 @@ from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.loop import PickRecord, SyntheticBinSource, run_cell_loop
 from normpos_grasp.perception.base import Segmenter
-from normpos_grasp.pipeline import make_segmenter
+from normpos_grasp.perception.factory import choose_segmenter
 from normpos_grasp.report.frame import frame_overlay, frame_twin
 from normpos_grasp.report.html import report_page, table_html, write_page
 from normpos_grasp.report.overlay import encode_png
@@ -79,22 +79,12 @@ def resolve_cell(name_or_path: str) -> CellConfig:
         return load_cell(file)
 
 
-def choose_segmenter(kind: str, source: SyntheticBinSource | None = None) -> tuple[Segmenter, str]:
-    """The requested segmenter; the depth segmenter if the bundled model is not available (logged).
-
-    'gt' takes the synthetic bin's true masks (needs `source`): it checks everything after segmentation alone.
-    """
-    if kind == "gt":
-        if source is None:
-            raise InputError("the 'gt' segmenter needs the synthetic source whose truth it reports")
-        return source.ground_truth_segmenter(), "gt"
-    try:
-        return make_segmenter(kind), kind
-    except NormposError as exc:
-        if kind == "depth":
-            raise
-        log.warning("segmenter %r unavailable (%s); using the depth segmenter", kind, exc)
-        return make_segmenter("depth"), "depth"
+def demo_segmenter(kind: str, source: SyntheticBinSource | None = None) -> tuple[Segmenter, str]:
+    """The requested segmenter ('model' falls back to the depth segmenter, logged, when the bundled model cannot be
+    loaded); 'gt' takes the synthetic bin's true masks (needs `source`): it checks everything after segmentation."""
+    truth = source.ground_truth_segmenter if source is not None else None
+    choice = choose_segmenter("auto" if kind == "model" else kind, ground_truth=truth)
+    return choice.segmenter, choice.kind
 
 
 @contextlib.contextmanager
@@ -156,7 +146,7 @@ def run_demo(
     cell = resolve_cell(opts.cell)
     step(f"dropping {opts.parts} parts into the bin (physics)")
     source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor, parts=opts.part_names)
-    segmenter, seg_kind = choose_segmenter(opts.segmenter, source)
+    segmenter, seg_kind = demo_segmenter(opts.segmenter, source)
     from normpos_grasp.sim.parts import default_part_library
 
     library = default_part_library()

@@ -16,6 +16,7 @@ from normpos_grasp.errors import InputError
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.change import unchanged
+from normpos_grasp.perception.factory import make_segmenter
 from normpos_grasp.planning.plan import PlanOptions, plan_pick
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.normpos import NormPosition
@@ -24,8 +25,7 @@ from normpos_grasp.records.template import Template, TemplateFit
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_many
 from normpos_grasp.typing import FloatArray
 
-SEGMENTER_KINDS = ("model", "depth")
-
+__all__ = ["FrameResult", "PipelineOptions", "ReuseOptions", "make_segmenter", "perceive", "process_frame"]
 
 @dataclass(frozen=True)
 class ReuseOptions:
@@ -78,19 +78,6 @@ class FrameResult:
     @property
     def accepted_fits(self) -> list[TemplateFit]:
         return [f for f in self.fits if f.accepted]
-
-
-def make_segmenter(kind: str) -> Segmenter:
-    """A segmenter by name: 'model' (the bundled ONNX model) or 'depth' (model-free, labels from fitting)."""
-    if kind == "model":
-        from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
-
-        return OnnxSegmenter()
-    if kind == "depth":
-        from normpos_grasp.perception.depth_segmenter import DepthSegmenter
-
-        return DepthSegmenter()
-    raise InputError(f"unknown segmenter {kind!r}; choose one of {', '.join(SEGMENTER_KINDS)} (or 'gt' for BOP data)")
 
 
 def perceive(

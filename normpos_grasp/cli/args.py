@@ -75,3 +75,31 @@ def check_out_file(path: Path, overwrite: bool) -> Path:
     if parent.exists() and not parent.is_dir():
         raise InputError(f"--out {path}: {parent} is a file, not a folder")
     return path
+
+
+#: help text of every `--segmenter` flag
+SEGMENTER_HELP = (
+    "instance source: model (the bundled ONNX model, or --seg-model), depth (model-free; the template fit names the "
+    "part), gt (the data's true masks: measures everything after segmentation), auto (model when its classes cover "
+    "the library, else depth)"
+)
+
+
+def add_segmenter_args(parser: argparse.ArgumentParser, default: str) -> None:
+    """The same two flags in every command that segments: --segmenter KIND and --seg-model PATH."""
+    from normpos_grasp.perception.factory import SEGMENTER_KINDS
+
+    parser.add_argument(
+        "--segmenter", choices=SEGMENTER_KINDS, default=default, help=f"{SEGMENTER_HELP} (default {default})"
+    )
+    parser.add_argument(
+        "--seg-model",
+        "--model",
+        "--onnx",
+        dest="seg_model",
+        metavar="ONNX",
+        type=Path,
+        default=None,
+        help="ONNX segmentation model for --segmenter model/auto (default: the bundled one); "
+        "--model and --onnx are older spellings",
+    )

@@ -21,13 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.cli.args import check_out_file, float_in, int_in
+from normpos_grasp.cli.args import add_segmenter_args, check_out_file, float_in, int_in
+from normpos_grasp.cli.measure import scene_segmenter
 from normpos_grasp.errors import InputError
 from normpos_grasp.io.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
-
-SEGMENTERS = ("auto", "model", "depth", "gt")
 
 
 def register(subparsers: Any) -> None:
@@ -41,14 +40,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--models", required=True, help="template library: BOP models folder or template folders")
     p.add_argument("--out", required=True, help="results CSV to write (refused when it exists, see --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing results CSV")
-    p.add_argument(
-        "--segmenter",
-        choices=SEGMENTERS,
-        default="auto",
-        help="model: bundled ONNX model; depth: model-free depth segmenter (the fit picks the template); "
-        "gt: BOP mask_visib (measures fitting alone); auto: model when its classes cover the library, else depth",
-    )
-    p.add_argument("--onnx", default=None, help="ONNX model file for --segmenter model (default: bundled)")
+    add_segmenter_args(p, "auto")
     p.add_argument("--max-frames", type=int_in(0, 1_000_000), default=0,
                    help="stop after this many frames per scene (0 = all)")  # fmt: skip
     p.add_argument("--include-rejected", action="store_true", help="also write rejected fits (score halved)")
@@ -80,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
     writer = csv.writer(text)
     writer.writerow(["scene_id", "im_id", "obj_id", "score", "R", "t", "time"])
     for scene, ids in work:
-        segmenter = _make_segmenter(args, scene, library)
+        choice = scene_segmenter(args.segmenter, scene, args.seg_model, None, library.labels)
+        segmenter, args.segmenter_used = choice.segmenter, choice.kind
         for im_id in ids:
             frame = scene.load_frame(im_id)
             t0 = time.perf_counter()
@@ -104,37 +97,6 @@ def run(args: argparse.Namespace) -> int:
         f"({time.perf_counter() - t_all:.1f} s) -> {out}"
     )
     return 0
-
-
-def _make_segmenter(args: argparse.Namespace, scene: Any, library: Any) -> Any:
-    choice = args.segmenter
-    if choice == "gt":
-        from normpos_grasp.perception.gt import GroundTruthSegmenter
-
-        args.segmenter_used = "gt"
-        return GroundTruthSegmenter(scene)
-    if choice in ("model", "auto"):
-        try:
-            from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
-
-            seg = OnnxSegmenter(args.onnx)
-        except (ImportError, OSError, ValueError) as exc:
-            if choice == "model":
-                raise InputError(f"cannot load the ONNX segmenter: {exc}") from exc
-            seg = None
-        if seg is not None:
-            names = set(getattr(seg, "class_names", ()))
-            missing = sorted(set(library.labels) - names)
-            if not missing or choice == "model":
-                if missing:
-                    logger.warning("the model does not know the labels %s; those parts will not be found", missing)
-                args.segmenter_used = "model"
-                return seg
-            logger.warning("the model's classes do not cover the library (%s): using the depth segmenter", missing)
-    from normpos_grasp.perception.depth_segmenter import DepthSegmenter
-
-    args.segmenter_used = "depth"
-    return DepthSegmenter()
 
 
 def _row(scene_id: int, im_id: int, fit: Any, camera: Any, dt: float) -> list[str]:

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.cli.args import OVERWRITE_HELP, check_out_dir, int_in
-from normpos_grasp.errors import InputError, MeasurementError, MissingDependency, NormposError, SegmentationError
+from normpos_grasp.cli.args import OVERWRITE_HELP, add_segmenter_args, check_out_dir, int_in
+from normpos_grasp.errors import InputError, MeasurementError, NormposError
 from normpos_grasp.io.atomic import atomic_write_bytes, atomic_write_text
 from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
 from normpos_grasp.measure.depth import MAX_HALF_WINDOW, DepthFillOptions
@@ -39,8 +39,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("path", type=Path, help="BOP scene folder (with scene_camera.json) or split folder of scenes")
     p.add_argument("--out", type=Path, required=True, help="output folder (created; must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-    p.add_argument("--segmenter", choices=("model", "depth", "gt"), default="gt", help="instance source (default gt)")
-    p.add_argument("--model", type=Path, default=None, help="ONNX model for --segmenter model (default: bundled)")
+    add_segmenter_args(p, "gt")
     p.add_argument("--models-dir", type=Path, default=None, help="BOP models folder to render GT masks when a scene "
                    "has no mask_visib (default: PATH/../models)")  # fmt: skip
     p.add_argument("--frames", type=str, default=None, help="comma-separated image ids (default: all)")
@@ -53,31 +52,18 @@ def register(subparsers: Any) -> None:
     p.set_defaults(handler=run)
 
 
-def _make_segmenter(kind: str, scene: BopScene, args: argparse.Namespace) -> Segmenter:
-    if kind == "gt":
-        from normpos_grasp.perception.gt import GroundTruthOptions, GroundTruthSegmenter
+def scene_segmenter(
+    kind: str, scene: BopScene, seg_model: Path | None, models_dir: Path | None, labels: Any = ()
+) -> Any:
+    """`perception.factory.choose_segmenter` for a BOP scene: 'gt' reads the scene's masks (rendered from the models
+    in `models_dir` when the scene has no mask_visib)."""
+    from normpos_grasp.perception.factory import choose_segmenter
+    from normpos_grasp.perception.gt import GroundTruthOptions, GroundTruthSegmenter
 
-        md = None if args.models_dir is None else str(args.models_dir)
-        return GroundTruthSegmenter(scene, GroundTruthOptions(models_dir=md))
-    module, cls = {
-        "model": ("normpos_grasp.perception.onnx_segmenter", "OnnxSegmenter"),
-        "depth": ("normpos_grasp.perception.depth_segmenter", "DepthSegmenter"),
-    }[kind]
-    import importlib
-
-    try:
-        factory = getattr(importlib.import_module(module), cls)
-    except MissingDependency:
-        raise
-    except (ImportError, AttributeError) as exc:
-        raise SegmentationError(
-            f"--segmenter {kind} needs {module}.{cls}, which this installation lacks ({exc}); use --segmenter gt"
-        ) from exc
-    if kind == "model" and args.model is not None:
-        segmenter: Segmenter = factory(args.model)
-        return segmenter
-    made: Segmenter = factory()
-    return made
+    md = None if models_dir is None else str(models_dir)
+    return choose_segmenter(
+        kind, seg_model, labels, lambda: GroundTruthSegmenter(scene, GroundTruthOptions(models_dir=md))
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -110,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         out_dir = out_root / f"{scene.scene_id:06d}"
         for im_id in ids:
             if segmenter is None:
-                segmenter = _make_segmenter(args.segmenter, scene, args)
+                segmenter = scene_segmenter(args.segmenter, scene, args.seg_model, args.models_dir).segmenter
             result = measure_frame(scene, im_id, segmenter, options, out_dir, write_ply=not args.no_ply)
             n_frames += 1
             n_objects += len(result["objects"])

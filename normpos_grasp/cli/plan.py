@@ -15,7 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from normpos_grasp.cli.args import check_out_file, int_in
+from normpos_grasp.cli.args import add_segmenter_args, check_out_file, int_in
 from normpos_grasp.errors import InputError, NormposError, TemplateError
 from normpos_grasp.io.atomic import atomic_write_text
 
@@ -33,15 +33,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.add_argument("--models", type=Path, default=None, help="template library or BOP models folder (parts the cell "
                    "file does not list); default: the cell's `templates`")  # fmt: skip
-    p.add_argument("--segmenter", choices=("gt", "depth", "model"), default="gt", help="instance source (default gt)")
-    p.add_argument("--model", type=Path, default=None, help="ONNX model for --segmenter model (default: bundled)")
+    add_segmenter_args(p, "gt")
     p.add_argument("--pick-unmatched", action="store_true", help="also pick objects no template matched (as boxes)")
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from normpos_grasp.cell import load_cell
-    from normpos_grasp.cli.measure import _make_segmenter
+    from normpos_grasp.cli.measure import scene_segmenter
     from normpos_grasp.io.bop import BopScene, is_scene_dir
     from normpos_grasp.measure.measure import MeasureOptions, measure_instances
     from normpos_grasp.planning import PlanOptions, plan_pick
@@ -64,10 +63,8 @@ def run(args: argparse.Namespace) -> int:
     if frame.camera.world_from_camera is None:
         raise InputError("the frame's camera has no world_from_camera: give camera.world_from_camera in the cell file")
     library = load_library(models)
-    seg_args = argparse.Namespace(
-        models_dir=models if (Path(models) / "models_info.json").is_file() else None, model=args.model
-    )
-    segmenter = _make_segmenter(args.segmenter, scene, seg_args)
+    models_dir = Path(models) if (Path(models) / "models_info.json").is_file() else None
+    segmenter = scene_segmenter(args.segmenter, scene, args.seg_model, models_dir, library.labels).segmenter
     t1 = time.perf_counter()
     instances = segmenter.segment(frame)
     t2 = time.perf_counter()

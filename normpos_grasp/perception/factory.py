@@ -1,0 +1,83 @@
+"""The one way to get a segmenter by name, used by every command and by `pipeline`.
+
+Kinds: 'model' (the bundled ONNX model, or the one at `model_path`), 'depth' (model-free; labels come from the
+template fit), 'gt' (the data's own true masks: needs `ground_truth`, a BOP scene or a synthetic source), and 'auto'
+(the model when it loads and knows every label of the library, else the depth segmenter, with a warning).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Collection
+from dataclasses import dataclass
+from pathlib import Path
+
+from normpos_grasp.errors import InputError, MissingDependency, NormposError, SegmentationError
+from normpos_grasp.perception.base import Segmenter
+
+logger = logging.getLogger(__name__)
+
+SEGMENTER_KINDS = ("model", "depth", "gt", "auto")
+
+
+@dataclass(frozen=True, eq=False)
+class SegmenterChoice:
+    """The segmenter made and the kind it is ('model', 'depth' or 'gt': 'auto' resolved)."""
+
+    segmenter: Segmenter
+    kind: str
+
+
+def choose_segmenter(
+    kind: str,
+    model_path: str | Path | None = None,
+    labels: Collection[str] = (),
+    ground_truth: Callable[[], Segmenter] | None = None,
+) -> SegmenterChoice:
+    """The segmenter of `kind` (see the module docstring). labels: the library's labels, which 'auto' needs the
+    model to know. ground_truth: makes the true-mask segmenter for 'gt'. Raises InputError for an unknown kind,
+    SegmentationError when the model cannot be loaded (kind 'model')."""
+    if kind == "gt":
+        if ground_truth is None:
+            raise InputError("the 'gt' segmenter needs data with true masks (a BOP scene or a synthetic source)")
+        return SegmenterChoice(ground_truth(), "gt")
+    if kind == "depth":
+        from normpos_grasp.perception.depth_segmenter import DepthSegmenter
+
+        return SegmenterChoice(DepthSegmenter(), "depth")
+    if kind == "model":
+        return SegmenterChoice(_load_model(model_path), "model")
+    if kind == "auto":
+        try:
+            model = _load_model(model_path)
+        except (SegmentationError, MissingDependency) as exc:
+            logger.warning("the segmentation model is unavailable (%s): using the depth segmenter", exc)
+            return choose_segmenter("depth")
+        missing = sorted(set(labels) - set(getattr(model, "class_names", ())))
+        if missing:
+            logger.warning("the model does not know the labels %s: using the depth segmenter", missing)
+            return choose_segmenter("depth")
+        return SegmenterChoice(model, "model")
+    raise InputError(f"unknown segmenter {kind!r}; choose one of {', '.join(SEGMENTER_KINDS)}")
+
+
+def make_segmenter(
+    kind: str,
+    model_path: str | Path | None = None,
+    labels: Collection[str] = (),
+    ground_truth: Callable[[], Segmenter] | None = None,
+) -> Segmenter:
+    """`choose_segmenter(...).segmenter`."""
+    return choose_segmenter(kind, model_path, labels, ground_truth).segmenter
+
+
+def _load_model(model_path: str | Path | None) -> Segmenter:
+    try:
+        from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
+
+        return OnnxSegmenter(model_path)
+    except NormposError:
+        raise
+    except (ImportError, OSError, ValueError) as exc:
+        where = f" {model_path}" if model_path is not None else ""
+        raise SegmentationError(f"cannot load the segmentation model{where}: {exc}") from exc
