@@ -148,7 +148,8 @@ class HandEyeResult:
     flange origin). rms_px over all corners; used / rejected image indices (rejected: no board found); method of
     the starting solution, with candidates {method: reprojection RMS px}; std_position_mm / std_rotation_deg: 1-sigma
     of the camera pose from the refinement's Jacobian (position per axis of the parent frame, rotation per camera
-    axis); excitation; warnings."""
+    axis); start_camera_pose (4, 4): the camera pose of the starting solution, before the joint refinement;
+    excitation; warnings."""
 
     mode: str
     camera_pose: FloatArray
@@ -165,6 +166,7 @@ class HandEyeResult:
     std_position_mm: FloatArray
     std_rotation_deg: FloatArray
     excitation: ExcitationReport
+    start_camera_pose: FloatArray = field(default_factory=lambda: np.eye(4))
     warnings: tuple[str, ...] = ()
     board: tuple[int, int] = (9, 6)
     square_m: float = 0.025
@@ -550,6 +552,7 @@ def _calibrate(
         std_position_mm=std_pos_m * 1000.0,
         std_rotation_deg=np.degrees(std_rot),
         excitation=excitation,
+        start_camera_pose=x0,
         warnings=tuple(warnings),
         board=opts.board,
         square_m=opts.square_m,
