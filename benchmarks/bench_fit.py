@@ -114,13 +114,13 @@ def main() -> None:
                 reps.append((time.perf_counter() - w0) / len(nps) * 10)
             many_wall.append(float(np.median(reps)))
             many_same &= all(
-                m.accepted == f.accepted and np.allclose(m.world_from_object, f.world_from_object, atol=1e-9)
+                m.accepted == f.accepted and np.allclose(m.frame_from_object, f.frame_from_object, atol=1e-9)
                 for m, f in zip(many, fits, strict=True)
             )
         for fit, inst in zip(fits, insts, strict=True):
             t = sf.layout.templates[inst.source_id]
             gt = sf.world_from_object[inst.source_id]
-            te, re, add = sym_errors(t, fit.world_from_object, gt)
+            te, re, add = sym_errors(t, fit.frame_from_object, gt)
             correct = add < 0.1 * prepare(t).diameter
             rows.append((t.name, te, re, add, correct, fit.accepted, fit.time_s, fit.scale))
         if f < args.unlabelled:
@@ -236,8 +236,8 @@ def lmo() -> None:
         (c, b) for c in cases for b in (("no bias", FitOptions()), ("bias 7.4 mm", FitOptions(depth_bias_m=0.0074)))
     ]:
         fit = fit_template(npos_case, t, o, FitContext(cam, depth))
-        te = np.linalg.norm(fit.world_from_object[:3, 3] - gt[:3, 3]) * 1000
-        re = np.degrees(rotation_angle(gt[:3, :3].T @ fit.world_from_object[:3, :3]))
+        te = np.linalg.norm(fit.frame_from_object[:3, 3] - gt[:3, 3]) * 1000
+        re = np.degrees(rotation_angle(gt[:3, :3].T @ fit.frame_from_object[:3, :3]))
         print(
             f"LM-O obj 5, {src}, {name}: {te:.2f} mm / {re:.2f} deg, "
             f"accepted={fit.accepted} score={fit.score:.3f} {fit.time_s * 1000:.0f} ms {fit.reason}"

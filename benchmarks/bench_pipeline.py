@@ -151,7 +151,7 @@ def score_frame(sf: Any, result: Any, tally: Tally, diameters: dict[str, float])
             ok = part >= 0 and fit.template.name == templates[part].name
             if ok:
                 _, _, add = pose_errors(
-                    templates[part], _world(fit.world_from_object, fit.frame, cam), sf.world_from_object[part]
+                    templates[part], _world(fit.frame_from_object, fit.frame, cam), sf.world_from_object[part]
                 )
                 ok = add < 0.1 * diameters[templates[part].name]
             tally.wrong_all += int(not ok)
@@ -169,7 +169,7 @@ def score_frame(sf: Any, result: Any, tally: Tally, diameters: dict[str, float])
         if fit is None or not fit.accepted:
             continue
         tally.accepted += 1
-        est = _world(fit.world_from_object, fit.frame, cam)
+        est = _world(fit.frame_from_object, fit.frame, cam)
         if fit.template.name != templates[part].name:
             c_est = est[:3, :3] @ prepare(fit.template).centroid + est[:3, 3]
             gt = sf.world_from_object[part]

@@ -98,6 +98,10 @@ class NoIKSolution(NormposError):
         self.target = target
 
 
+class FrameError(InputError):
+    """A pose or point set used in a frame it is not in (a camera-frame fit where a world pose is needed)."""
+
+
 class CellConfigError(NormposError):
     """A cell description (YAML) is invalid; `path` locates the bad key."""
 

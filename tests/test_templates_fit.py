@@ -14,7 +14,7 @@ trimesh = pytest.importorskip("trimesh")
 from normpos_grasp.camera.model import Camera  # noqa: E402
 from normpos_grasp.errors import FitRejected, InputError, TemplateError  # noqa: E402
 from normpos_grasp.geometry.transforms import make_pose, random_rotation, rotation_angle  # noqa: E402
-from normpos_grasp.records.template import Symmetry, Template  # noqa: E402
+from normpos_grasp.records.template import Symmetry, Template, TemplateFit  # noqa: E402
 from normpos_grasp.templates.complete import complete_normposition  # noqa: E402
 from normpos_grasp.templates.control_points import fit_control_points  # noqa: E402
 from normpos_grasp.templates.fit import (  # noqa: E402
@@ -78,7 +78,7 @@ def test_fit_recovers_pose_from_noisy_partial_view(lib: dict[str, Template], nam
         )
         view = _view(t, gt, k)
         fit = fit_template(view.normpos[0], t, FitOptions(), FitContext(CAM, view.depth_m))
-        terr, rerr = _sym_error(t, fit.world_from_object, gt)
+        terr, rerr = _sym_error(t, fit.frame_from_object, gt)
         assert fit.accepted, fit.reason
         assert terr < 0.004 and rerr < 4.0, (terr, rerr)
         assert abs(fit.scale - 1.0) < 0.03
@@ -90,7 +90,7 @@ def test_fit_without_depth_context_still_accurate(lib: dict[str, Template]) -> N
     t = lib["l_bracket"]
     gt = make_pose(random_rotation(np.random.default_rng(5)), [0.02, -0.01, 0.6])
     fit = fit_template(_view(t, gt, 1).normpos[0], t)
-    terr, rerr = _sym_error(t, fit.world_from_object, gt)
+    terr, rerr = _sym_error(t, fit.frame_from_object, gt)
     assert fit.accepted and terr < 0.004 and rerr < 4.0
 
 
@@ -222,10 +222,24 @@ def test_lmo_real_frame_can() -> None:
     # the depth of this frame reads ~7.4 mm behind the surface (README): within 1 cm without correction,
     fit = fit_template(npos, t, FitOptions(), FitContext(cam, depth))
     assert fit.accepted, fit.reason
-    assert np.linalg.norm(fit.world_from_object[:3, 3] - gt[:3, 3]) < 0.010
-    assert np.degrees(rotation_angle(gt[:3, :3].T @ fit.world_from_object[:3, :3])) < 3.0
+    assert np.linalg.norm(fit.frame_from_object[:3, 3] - gt[:3, 3]) < 0.010
+    assert np.degrees(rotation_angle(gt[:3, :3].T @ fit.frame_from_object[:3, :3])) < 3.0
     # and within 5 mm / 3 deg once the sensor's documented offset is calibrated out
     fit = fit_template(npos, t, FitOptions(depth_bias_m=0.0074), FitContext(cam, depth))
     assert fit.accepted, fit.reason
-    assert np.linalg.norm(fit.world_from_object[:3, 3] - gt[:3, 3]) < 0.005
-    assert np.degrees(rotation_angle(gt[:3, :3].T @ fit.world_from_object[:3, :3])) < 3.0
+    assert np.linalg.norm(fit.frame_from_object[:3, 3] - gt[:3, 3]) < 0.005
+    assert np.degrees(rotation_angle(gt[:3, :3].T @ fit.frame_from_object[:3, :3])) < 3.0
+
+
+def test_a_camera_frame_fit_has_no_world_pose() -> None:
+    """A fit made without extrinsics says so: its pose is only readable as frame_from_object."""
+    from normpos_grasp.errors import FrameError
+
+    box = Template("box", "box", trimesh.creation.box((0.04, 0.03, 0.02)))
+    fit = TemplateFit(box, np.eye(4), 1.0, 0.0, 1.0, 1.0, 0.0, True, frame="camera")
+    np.testing.assert_array_equal(fit.frame_from_object, np.eye(4))
+    with pytest.raises(FrameError, match="camera frame"):
+        _ = fit.world_from_object
+    assert np.array_equal(replace(fit, frame="world").world_from_object, np.eye(4))
+    with pytest.raises(InputError, match="'world' or 'camera'"):
+        replace(fit, frame="base")

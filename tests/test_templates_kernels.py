@@ -150,7 +150,7 @@ def test_fit_many_equals_fit_best_in_a_loop(lib: dict[str, Template]) -> None:
     for a, b in zip(many, loop, strict=True):
         assert (a.template.name, a.accepted) == (b.template.name, b.accepted)
         assert a.accepted
-        np.testing.assert_allclose(a.world_from_object, b.world_from_object, atol=1e-12)
+        np.testing.assert_allclose(a.frame_from_object, b.frame_from_object, atol=1e-12)
         assert a.score == b.score
 
 

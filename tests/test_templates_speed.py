@@ -99,4 +99,4 @@ def test_template_floor_keeps_fit_best_decisions(lib: dict[str, Template], monke
         full = fit_best(npos, templates, FitOptions(), ctx)
         assert (fast.template.name, fast.accepted) == (full.template.name, full.accepted)
         assert fast.score == pytest.approx(full.score)
-        np.testing.assert_allclose(fast.world_from_object, full.world_from_object, atol=1e-9)
+        np.testing.assert_allclose(fast.frame_from_object, full.frame_from_object, atol=1e-9)

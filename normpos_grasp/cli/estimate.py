@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _row(scene_id: int, im_id: int, fit: Any, camera: Any, dt: float) -> list[str]:
-    pose = np.asarray(fit.world_from_object, dtype=np.float64)
+    pose = np.asarray(fit.frame_from_object, dtype=np.float64)
     if fit.frame == "world":
         pose = camera.camera_from_world @ pose
     if fit.template.obj_id < 0:

@@ -7,12 +7,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from normpos_grasp.errors import FrameError, InputError
 from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:
     import trimesh
 
+FRAMES = ("world", "camera")
 SHAPE_CLASSES = ("box", "cylinder", "sphere", "plate", "bracket", "ring", "irregular")
 
 
@@ -116,7 +118,9 @@ class Template:
 class TemplateFit:
     """Result of fitting a template to one norm-position.
 
-    world_from_object: (4, 4) pose in the norm-position's frame ('world' or 'camera').
+    frame_from_object: (4, 4) pose in `frame`, the norm-position's frame: 'world' when the camera had extrinsics,
+    else 'camera'. `world_from_object` returns it only for a world-frame fit and raises FrameError otherwise, so
+    a camera-frame pose can never be taken for a world pose.
     score in [0, 1]; rmse_m: inlier point-to-surface RMS, metres; inlier_ratio: share of measured points
     within the inlier distance; coverage: share of the template's camera-visible surface that was measured;
     free_space_violation: share of the template's visible surface lying in front of measured depth;
@@ -125,7 +129,7 @@ class TemplateFit:
     """
 
     template: Template
-    world_from_object: FloatArray
+    frame_from_object: FloatArray
     score: float
     rmse_m: float
     inlier_ratio: float
@@ -138,3 +142,17 @@ class TemplateFit:
     instance_id: int = 0
     time_s: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.frame not in FRAMES:
+            raise InputError(f"a fit's frame is 'world' or 'camera', got {self.frame!r}")
+
+    @property
+    def world_from_object(self) -> FloatArray:
+        """(4, 4) pose in the world frame; FrameError for a fit made in the camera frame (no extrinsics)."""
+        if self.frame != "world":
+            raise FrameError(
+                f"the fit of {self.template.name!r} is in the {self.frame} frame (the camera had no "
+                "world_from_camera): calibrate extrinsics, or use frame_from_object"
+            )
+        return self.frame_from_object

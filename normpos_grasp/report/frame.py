@@ -40,7 +40,8 @@ def frame_overlay(result: FrameResult) -> UInt8Array:
             continue
         mesh = fit.template.mesh
         verts = np.asarray(mesh.vertices, dtype=np.float64) * fit.scale
-        verts = verts @ fit.world_from_object[:3, :3].T + fit.world_from_object[:3, 3]
+        pose = fit.frame_from_object  # world or camera: the frame draw_overlay reads for this camera
+        verts = verts @ pose[:3, :3].T + pose[:3, 3]
         outlines.append(
             OutlineItem(verts, np.asarray(mesh.faces), f"{fit.template.name} {fit.score:.2f}", palette_color(k))
         )

@@ -51,8 +51,8 @@ def complete_normposition(
     if not fit.accepted:
         raise InputError(f"cannot complete a rejected fit ({fit.reason}); use an accepted TemplateFit")
     prep = prepare(fit.template)
-    rot = fit.world_from_object[:3, :3]
-    pts = (prep.samples * fit.scale) @ rot.T + fit.world_from_object[:3, 3]
+    rot = fit.frame_from_object[:3, :3]
+    pts = (prep.samples * fit.scale) @ rot.T + fit.frame_from_object[:3, 3]
     nrm = prep.normals @ rot.T
     measured = np.zeros(len(pts), dtype=bool)
     if normpos is not None and normpos.n_points:

@@ -754,7 +754,7 @@ def _decide(
     world_from_object = invert_pose(best.object_from_frame)
     return TemplateFit(
         template=template,
-        world_from_object=world_from_object,
+        frame_from_object=world_from_object,
         score=s.score if not reasons else min(s.score, 0.5 * s.score),
         rmse_m=s.rmse_m,
         inlier_ratio=s.inlier_ratio,
@@ -783,7 +783,7 @@ def _rejected(template: Template, normpos: NormPosition, reason: str, t0: float)
         pose[:3, 3] = np.nan_to_num(np.asarray(normpos.centroid, dtype=np.float64))
     return TemplateFit(
         template=template,
-        world_from_object=pose,
+        frame_from_object=pose,
         score=0.0,
         rmse_m=float("inf"),
         inlier_ratio=0.0,
