@@ -3,6 +3,7 @@
 calibrate hand-eye --mode eye-to-hand|eye-in-hand --images IMG... --poses POSES.csv --board 9x6 --square 0.025
     --camera camera.json --out camera.json [--cell CELL.yaml] [--touch X Y Z [--touch-image IMG]]
     [--verify-images IMG... --verify-poses VERIFY.csv]
+calibrate hand-eye --mode MODE --record HOST --poses POSES.csv     (record the flange poses over RTDE)
 
 Eye-to-hand writes the camera's `world_from_camera` (world = the robot base, or the cell's world through its
 `robot.world_from_base` with --cell); eye-in-hand writes `flange_from_camera` into the camera JSON (and drops a
@@ -65,17 +66,24 @@ def add_hand_eye_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="eye-to-hand: fixed camera, board on the flange; "
         "eye-in-hand: camera on the wrist, board fixed in the cell",
     )
-    p.add_argument("--images", nargs="+", type=Path, required=True, help="checkerboard images, one per pose")
+    p.add_argument("--images", nargs="+", type=Path, default=None, help="checkerboard images, one per pose")
     p.add_argument(
         "--poses",
         type=Path,
         required=True,
-        help="CSV x,y,z,rx,ry,rz: base_from_flange per image (m, UR rotation vector), zero TCP",
+        help="CSV x,y,z,rx,ry,rz: base_from_flange per image (m, UR rotation vector), zero TCP; written by --record",
     )
     p.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
     p.add_argument("--square", type=_positive(1.0, "metres"), default=0.025, help="square edge, m (default 0.025)")
-    p.add_argument("--camera", type=Path, required=True, help="camera JSON with the intrinsics")
-    p.add_argument("--out", type=Path, required=True, help="camera JSON to write (may equal --camera)")
+    p.add_argument("--camera", type=Path, default=None, help="camera JSON with the intrinsics")
+    p.add_argument("--out", type=Path, default=None, help="camera JSON to write (may equal --camera)")
+    p.add_argument(
+        "--record",
+        metavar="HOST",
+        default=None,
+        help="record POSES.csv over RTDE instead: the flange pose of the controller at HOST each time Enter is "
+        "pressed (TCP set to zero); nothing is calibrated",
+    )
     p.add_argument("--report", type=Path, default=None, help="residual report JSON (default OUT.hand_eye.json)")
     p.add_argument(
         "--cell",
@@ -172,6 +180,16 @@ def run_hand_eye(args: argparse.Namespace) -> int:
     from normpos_grasp.io.atomic import atomic_write_text
 
     opts = HandEyeOptions(board=_board(args.board), square_m=args.square, max_rms_px=args.max_rms)
+    if args.record is not None:
+        record_poses(args.record, args.poses, args.mode, opts)
+        return 0
+    missing = [
+        flag
+        for flag, value in (("--images", args.images), ("--camera", args.camera), ("--out", args.out))
+        if value is None
+    ]
+    if missing:
+        raise InputError(f"calibrate hand-eye needs {', '.join(missing)} (or --record HOST to record the poses)")
     report_path = args.report or args.out.with_name(args.out.stem + ".hand_eye.json")
     _check_out(args.out, "--out")
     _check_out(report_path, "--report")
@@ -275,3 +293,63 @@ def run_hand_eye(args: argparse.Namespace) -> int:
         raise InputError(f"cannot write {args.out}: {exc.strerror or exc}") from exc
     print(f"wrote {args.out} and {report_path}")
     return 0
+
+
+def record_poses(
+    host: str,
+    path: Path,
+    mode: str,
+    options: Any = None,
+    prompt: Callable[[str], str] = input,
+    max_poses: int = 100,
+) -> np.ndarray:
+    """Record POSES.csv interactively: each Enter reads `getActualTCPPose` of the controller at `host` over RTDE
+    (ur_rtde's RTDEReceiveInterface) while the arm stands still; 'q' or end of input finishes. The file is
+    rewritten (atomically) after every pose, so an interruption keeps what was recorded; an existing file is
+    refused. Prints the rotation spread once 3 poses are in. Returns the (N, 6) poses."""
+    from normpos_grasp.camera.hand_eye import HandEyeOptions, check_excitation, check_flange_poses
+    from normpos_grasp.camera.hand_eye_io import write_poses_csv
+    from normpos_grasp.errors import ConnectionLost, MissingDependency
+
+    opts = options if options is not None else HandEyeOptions()
+    if path.exists():
+        raise InputError(f"--poses {path} already exists; move it away or give a new name to record into")
+    _check_out(path, "--poses")
+    try:
+        import rtde_receive
+    except ImportError as exc:
+        raise MissingDependency("ur-rtde==1.6.5", "core", "calibrate hand-eye --record") from exc
+    try:
+        receiver = rtde_receive.RTDEReceiveInterface(host)
+    except RuntimeError as exc:
+        raise ConnectionLost(f"cannot open RTDE on {host}: {' '.join(str(exc).split())}") from exc
+    poses: list[list[float]] = []
+    try:
+        print(f"recording flange poses from {host} into {path} (TCP must be set to zero on the pendant)")
+        while len(poses) < max_poses:
+            try:
+                answer = prompt(f"pose {len(poses)}: move the arm, take image {len(poses)}, press Enter (q: done) ")
+            except EOFError:
+                break
+            if answer.strip().lower() in ("q", "quit", "done"):
+                break
+            speed = np.asarray(receiver.getActualTCPSpeed(), dtype=np.float64)
+            qd = np.asarray(receiver.getActualQd(), dtype=np.float64)
+            if np.linalg.norm(speed[:3]) > 1e-3 or np.linalg.norm(speed[3:]) > 1e-2 or np.abs(qd).max() > 2e-3:
+                print("the arm is moving: wait until it stands still, then press Enter again")
+                continue
+            pose = np.asarray(receiver.getActualTCPPose(), dtype=np.float64)
+            check_flange_poses(pose[None])
+            poses.append(pose.tolist())
+            write_poses_csv(path, np.array(poses))
+            print(f"  pose {len(poses) - 1}: {np.round(pose, 5).tolist()}")
+            if len(poses) >= 3:
+                report = check_excitation(np.array(poses), mode, opts)
+                spread = ", ".join(f"{v:.1f}" for v in report.spread_deg)
+                print(f"  rotation spread {spread} deg" + (f": {report.message}" if report.degenerate else ""))
+                for warning in report.warnings:
+                    print(f"  {warning}")
+    finally:
+        receiver.disconnect()
+    print(f"recorded {len(poses)} poses in {path}" if poses else "no pose recorded")
+    return np.array(poses)
