@@ -308,3 +308,5 @@ def test_cli_eye_to_hand_writes_world_from_camera(tmp_path: Path, capsys: pytest
     assert out.read_text(encoding="utf-8") == before
     with pytest.raises(InputError, match="needs --touch-image"):
         _cli([*argv, "--touch", "0.5", "0.0", "0.0"])
+    with pytest.raises(InputError, match="needs --images, --camera, --out"):
+        _cli(["--mode", EYE_TO_HAND, "--poses", str(tmp_path / "POSES.csv")])
