@@ -22,6 +22,7 @@ from normpos_grasp.geometry.transforms import transform_points
 from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.measure.depth import DepthFillOptions, fill_depth
 from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.kinds import Frame
 from normpos_grasp.records.normpos import NormPosition, OrientedBox
 from normpos_grasp.typing import ArrayLike, BoolArray, Float32Array, FloatArray, IntArray
 
@@ -178,6 +179,7 @@ def _measure_one(camera: Camera, raw_depth: FloatArray, inst: Instance, opts: Me
     rays = pixel_rays(camera)[y0:y1, x0:x1]
     pts_cam, nrm_cam, gy, gx = _points_and_normals(rays, sub_depth, good, st, opts.max_normal_jump_m)
     pixels = np.column_stack([gx + x0, gy + y0]).astype(np.int64)
+    frame_name: Frame
     if camera.world_from_camera is not None:
         wfc = camera.world_from_camera
         points = transform_points(wfc, pts_cam)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from normpos_grasp.records.kinds import Frame
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
 
@@ -55,7 +56,7 @@ class NormPosition:
     points: FloatArray
     normals: FloatArray
     pixels: IntArray
-    frame: str
+    frame: Frame
     viewpoint: FloatArray
     instance_id: int
     centroid: FloatArray

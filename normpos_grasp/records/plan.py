@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.records.grasp import GraspCandidate
+from normpos_grasp.records.kinds import PlanStatus
 from normpos_grasp.records.tool import ToolModel
 from normpos_grasp.typing import FloatArray
 
@@ -75,7 +76,7 @@ class PickPlan:
     """Result of `plan_pick`. status: 'ok' or 'no_feasible_grasp'. chosen: the evaluation of the grasp taken.
     counts: rejection counts by reason over all candidates. timing_ms: stage times."""
 
-    status: str
+    status: PlanStatus
     robot: str
     world_from_base: FloatArray
     tool: ToolModel

@@ -9,12 +9,12 @@ import numpy as np
 
 from normpos_grasp.errors import FrameError, InputError
 from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec
+from normpos_grasp.records.kinds import FRAMES, Frame
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:
     import trimesh
 
-FRAMES = ("world", "camera")
 SHAPE_CLASSES = ("box", "cylinder", "sphere", "plate", "bracket", "ring", "irregular")
 
 
@@ -138,7 +138,7 @@ class TemplateFit:
     accepted: bool
     reason: str = ""
     scale: float = 1.0
-    frame: str = "world"
+    frame: Frame = "world"
     instance_id: int = 0
     time_s: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)

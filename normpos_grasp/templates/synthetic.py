@@ -14,6 +14,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera
 from normpos_grasp.camera.render import render
+from normpos_grasp.records.kinds import Frame
 from normpos_grasp.records.normpos import NormPosition, OrientedBox
 from normpos_grasp.records.template import Template
 from normpos_grasp.typing import FloatArray
@@ -81,7 +82,7 @@ def make_normpos(
     mask: np.ndarray,
     label: str,
     instance_id: int,
-    frame: str = "camera",
+    frame: Frame = "camera",
     viewpoint: FloatArray | None = None,
 ) -> NormPosition:
     """A `NormPosition` from measured points (camera frame unless `frame`/`viewpoint` say otherwise)."""
