@@ -11,7 +11,8 @@ import pytest
 
 from normpos_grasp.errors import InputError, MissingDependency
 from normpos_grasp.simulate.batch import CSV_COLUMNS, BatchResult, run_batch, summarise, write_results
-from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, _changed, scene_seed
+from normpos_grasp.perception.change import depth_changed
+from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, scene_seed
 from normpos_grasp.simulate.plots import bar_chart
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -103,12 +104,12 @@ def test_change_detection_keeps_only_unchanged_instances() -> None:
     mask[20:40, 30:60] = True
     old = 0.8 + rng.normal(0.0, 0.003, mask.shape)
     new = 0.8 + rng.normal(0.0, 0.003, mask.shape)  # the same surface, fresh noise (D435-like sigma at 0.8 m)
-    assert not _changed(mask, new, mask, old, 0.0015)
-    assert _changed(mask, new - 0.003, mask, old, 0.0015)  # lifted by 3 mm
+    assert not depth_changed(mask, new, mask, old, 0.0015)
+    assert depth_changed(mask, new - 0.003, mask, old, 0.0015)  # lifted by 3 mm
     tilted = new.copy()
     tilted[20:40, 45:60] -= 0.004  # one half raised by 4 mm, the other not (the part tipped)
-    assert _changed(mask, tilted, mask, old, 0.0015)
-    assert _changed(mask, new, np.zeros_like(mask), old, 0.0015)  # no overlap: no evidence
+    assert depth_changed(mask, tilted, mask, old, 0.0015)
+    assert depth_changed(mask, new, np.zeros_like(mask), old, 0.0015)  # no overlap: no evidence
 
 
 def test_bad_arguments() -> None:
