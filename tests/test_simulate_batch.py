@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from normpos_grasp.errors import InputError, MissingDependency
-from normpos_grasp.simulate.batch import CSV_COLUMNS, BatchResult, run_batch, summarise, write_results
 from normpos_grasp.perception.change import depth_changed
+from normpos_grasp.simulate.batch import CSV_COLUMNS, BatchResult, run_batch, summarise, write_results
 from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, scene_seed
 from normpos_grasp.simulate.plots import bar_chart
 
