@@ -186,7 +186,9 @@ def test_impossible_inputs_are_refused() -> None:
         HandEyeOptions(board=(8, 6))
     with pytest.raises(InputError, match="rigid"):
         check_flange_poses(np.stack([np.eye(4) * 2.0] * 3))
-    # poses in the wrong order: the reprojection gate names the worst poses
+    # eye-in-hand data solved as eye-to-hand, or poses in the wrong order: the reprojection gate refuses them
+    with pytest.raises(CalibrationError, match=r"the mode \(eye-to-hand\) is right"):
+        calibrate_hand_eye_from_corners(CAM, corners, vec, EYE_TO_HAND)
     shuffled = vec[[1, 0, 3, 2, 5, 4]]
     with pytest.raises(CalibrationError, match="pose rows match the images"):
         calibrate_hand_eye_from_corners(CAM, corners, shuffled, EYE_IN_HAND)
