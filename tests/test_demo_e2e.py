@@ -21,8 +21,6 @@ from test_report_viewer import _render_status
 
 from normpos_grasp.cli.main import main
 
-pytest.importorskip("rtde_control", reason="ur-rtde is not installed")
-
 DEMO_HOST = "127.0.0.93"  # one emulator per loopback address; the execution tests use others
 PLAN_KEYS = {
     "format",

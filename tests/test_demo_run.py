@@ -127,7 +127,6 @@ def test_unreachable_bin_gives_no_feasible_grasp_record(bop_folder: dict[str, Pa
 
 
 def test_run_synthetic_executes_on_the_emulator(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("rtde_control", reason="ur-rtde is not installed")
     from normpos_grasp.sim.ur_emulator.process import EmulatorProcess
 
     out = tmp_path / "exec"

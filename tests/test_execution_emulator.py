@@ -15,8 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-pytest.importorskip("rtde_control")
+import rtde_control  # noqa: F401  (a hard dependency: imported, never skipped)
 
 from normpos_grasp.errors import ConnectionLost, DriverFault, ProtectiveStop, SafetyViolation
 from normpos_grasp.execution import DriverOptions, RtdeDriver, SafetyLimits, execute_plan
@@ -204,8 +203,9 @@ def test_unknown_script_refused_loudly(emu: EmulatorProcess) -> None:
 
 
 def test_planner_plan_executes(driver: RtdeDriver) -> None:
-    trimesh = pytest.importorskip("trimesh")
     from dataclasses import replace
+
+    import trimesh
 
     from normpos_grasp.cell import load_cell
     from normpos_grasp.geometry import make_pose

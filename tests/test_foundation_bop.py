@@ -178,7 +178,7 @@ def test_reader_errors(tmp_path: Path) -> None:
 
 
 def test_models_round_trip(tmp_path: Path) -> None:
-    trimesh = pytest.importorskip("trimesh")
+    import trimesh
     box = trimesh.creation.box(extents=[0.04, 0.06, 0.1])
     box.apply_translation([0.01, 0.0, 0.0])
     flip = make_pose(np.diag([-1.0, -1.0, 1.0]), [0.02, 0.0, 0.0])

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -30,7 +31,6 @@ from normpos_grasp.measure.measure import (
 from normpos_grasp.perception.gt import GroundTruthSegmenter
 from normpos_grasp.records.instance import Instance
 
-trimesh = pytest.importorskip("trimesh")
 LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
 needs_lmo = pytest.mark.skipif(not LMO.is_dir(), reason=f"LM-O sample not found at {LMO} (CI clones shared/ beside)")
 K = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])

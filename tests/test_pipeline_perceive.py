@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import mujoco  # noqa: F401  (physics settling of the bin scene; a hard dependency)
 import numpy as np
 import pytest
+import trimesh  # noqa: F401  (a hard dependency: imported, never skipped)
 from scipy.spatial import cKDTree
-
-pytest.importorskip("trimesh")
-pytest.importorskip("mujoco")  # physics settling of the bin scene
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.demo import resolve_cell

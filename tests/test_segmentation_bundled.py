@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
+import onnxruntime  # noqa: F401  (a hard dependency: imported, never skipped)
 import pytest
-
-pytest.importorskip("onnxruntime")
-pytest.importorskip("mujoco")
 
 from normpos_grasp.perception.onnx_segmenter import OnnxSegmenter
 from normpos_grasp.training.data import synth_samples

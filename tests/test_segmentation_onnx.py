@@ -5,12 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-import pytest
-
-pytest.importorskip("onnxruntime")
 import cv2
+import numpy as np
 import onnx
+import onnxruntime  # noqa: F401  (a hard dependency: imported, never skipped)
+import pytest
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError, ModelFormatError

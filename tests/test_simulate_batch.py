@@ -67,7 +67,6 @@ def test_summary_counts_and_causes() -> None:
 
 
 def test_written_files_are_deterministic(tmp_path: Path) -> None:
-    pytest.importorskip("cv2")
     a, b = tmp_path / "a", tmp_path / "b"
     write_results(_batch(), a, {"wall_s": 1.0})
     write_results(_batch(), b, {"wall_s": 2.0})
@@ -86,7 +85,6 @@ def test_written_files_are_deterministic(tmp_path: Path) -> None:
 
 
 def test_bar_chart_draws_bars() -> None:
-    pytest.importorskip("cv2")
     img = bar_chart("t", ["a", "b"], [1.0, 0.0], [3, 0])
     assert img.shape == (420, 720, 3)
     assert (img != 255).any(axis=2).sum() > 2000  # axes, labels and one full-height bar
@@ -144,7 +142,6 @@ def test_cli_registers_simulate() -> None:
 
 @pytest.mark.slow
 def test_episode_is_deterministic_for_a_seed(tmp_path: Path) -> None:
-    pytest.importorskip("mujoco")
     config = SimulationConfig(cell_path=str(CELL), parts_per_scene=3, seed=5, max_consecutive_failures=1)
     first = run_batch(config, 1)
     second = run_batch(config, 1)

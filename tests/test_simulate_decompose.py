@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.errors import MeshError  # noqa: E402
-from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec  # noqa: E402
-from normpos_grasp.sim.physics_decompose import DecompositionOptions, convex_decomposition  # noqa: E402
-from normpos_grasp.sim.physics_suction import SealOptions, check_seal, vacuum_force_n  # noqa: E402
+from normpos_grasp.errors import MeshError
+from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec
+from normpos_grasp.sim.physics_decompose import DecompositionOptions, convex_decomposition
+from normpos_grasp.sim.physics_suction import SealOptions, check_seal, vacuum_force_n
 
 
 def _inside_any_hull(point: np.ndarray, pieces) -> bool:

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
+import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
+import trimesh
 
-pytest.importorskip("mujoco")
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.errors import InputError  # noqa: E402
-from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec  # noqa: E402
-from normpos_grasp.records.template import Template  # noqa: E402
-from normpos_grasp.sim.physics import (  # noqa: E402
+from normpos_grasp.errors import InputError
+from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec
+from normpos_grasp.records.template import Template
+from normpos_grasp.sim.physics import (
     GripperSpec,
     PhysicsOptions,
     collision_pieces,

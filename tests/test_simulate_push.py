@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
+import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
+import trimesh
 
-pytest.importorskip("mujoco")
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.errors import InputError  # noqa: E402
-from normpos_grasp.geometry.transforms import make_pose  # noqa: E402
-from normpos_grasp.records.template import Template  # noqa: E402
-from normpos_grasp.sim.physics import GripperSpec  # noqa: E402
-from normpos_grasp.sim.physics_push import simulate_push  # noqa: E402
+from normpos_grasp.errors import InputError
+from normpos_grasp.geometry.transforms import make_pose
+from normpos_grasp.records.template import Template
+from normpos_grasp.sim.physics import GripperSpec
+from normpos_grasp.sim.physics_push import simulate_push
 
 TABLE = [("table", make_pose(translation=[0.0, 0.0, -0.025]), np.array([1.0, 1.0, 0.05]))]
 DOWN = np.column_stack([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # approach -z, jaws close along y

@@ -5,15 +5,13 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
+import cv2  # noqa: F401  (a hard dependency: imported, never skipped)
+import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
+import trimesh  # noqa: F401  (a hard dependency: imported, never skipped)
 
 import normpos_grasp.sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco loads)
-
-pytest.importorskip("mujoco")
-pytest.importorskip("trimesh")
-pytest.importorskip("cv2")
-
 from normpos_grasp.cli.main import main
 from normpos_grasp.errors import InputError
 from normpos_grasp.io.bop import read_models, read_split

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.records.template import SHAPE_CLASSES  # noqa: E402
-from normpos_grasp.sim.parts import box_symmetry, default_part_library, part_library_by_name  # noqa: E402
+from normpos_grasp.records.template import SHAPE_CLASSES
+from normpos_grasp.sim.parts import box_symmetry, default_part_library, part_library_by_name
 
 LIB = default_part_library()
 EXPECTED = {

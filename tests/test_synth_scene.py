@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
+import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
+import trimesh
 
 import normpos_grasp.sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco loads)
-
-pytest.importorskip("mujoco")
-fcl = pytest.importorskip("fcl")
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.errors import InputError  # noqa: E402
-from normpos_grasp.sim.parts import default_part_library  # noqa: E402
-from normpos_grasp.sim.scene import SceneOptions, compose_scene, static_boxes  # noqa: E402
+from normpos_grasp.errors import InputError
+from normpos_grasp.sim.parts import default_part_library
+from normpos_grasp.sim.scene import SceneOptions, compose_scene, static_boxes
 
 LIB = default_part_library()
 

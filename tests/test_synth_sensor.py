@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
+import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
+import trimesh  # noqa: F401  (a hard dependency: imported, never skipped)
 
 import normpos_grasp.sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco loads)
-
-pytest.importorskip("mujoco")
-pytest.importorskip("trimesh")
-
 from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.transforms import make_pose
 from normpos_grasp.sim.cameras import INTRINSICS, camera_intrinsics, camera_pose

@@ -8,16 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.camera.model import Camera  # noqa: E402
-from normpos_grasp.errors import FitRejected, InputError, TemplateError  # noqa: E402
-from normpos_grasp.geometry.transforms import make_pose, random_rotation, rotation_angle  # noqa: E402
-from normpos_grasp.records.template import Symmetry, Template, TemplateFit  # noqa: E402
-from normpos_grasp.templates.complete import complete_normposition  # noqa: E402
-from normpos_grasp.templates.control_points import fit_control_points  # noqa: E402
-from normpos_grasp.templates.fit import (  # noqa: E402
+from normpos_grasp.camera.model import Camera
+from normpos_grasp.errors import FitRejected, InputError, TemplateError
+from normpos_grasp.geometry.transforms import make_pose, random_rotation, rotation_angle
+from normpos_grasp.records.template import Symmetry, Template, TemplateFit
+from normpos_grasp.templates.complete import complete_normposition
+from normpos_grasp.templates.control_points import fit_control_points
+from normpos_grasp.templates.fit import (
     FitContext,
     FitOptions,
     fit_best,
@@ -25,8 +24,8 @@ from normpos_grasp.templates.fit import (  # noqa: E402
     fit_template,
     fit_template_or_raise,
 )
-from normpos_grasp.templates.library import load_library  # noqa: E402
-from normpos_grasp.templates.synthetic import render_views  # noqa: E402
+from normpos_grasp.templates.library import load_library
+from normpos_grasp.templates.synthetic import render_views
 
 REPO = Path(__file__).resolve().parents[1]
 LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
@@ -200,7 +199,8 @@ def test_control_points_kabsch_enumerates_symmetry(lib: dict[str, Template]) -> 
 
 @pytest.mark.skipif(not LMO.exists(), reason="shared LM-O sample not found next to the repository")
 def test_lmo_real_frame_can() -> None:
-    cv2 = pytest.importorskip("cv2")
+    import cv2
+
     from normpos_grasp.camera.render import render, visible_mask
     from normpos_grasp.templates.fit import estimate_normals
     from normpos_grasp.templates.synthetic import make_normpos

@@ -4,24 +4,21 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numba  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
-trimesh = pytest.importorskip("trimesh")
-pytest.importorskip("numba")
-
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
-
-from normpos_grasp.camera.model import Camera  # noqa: E402
-from normpos_grasp.geometry.transforms import make_pose, random_rotation  # noqa: E402
-from normpos_grasp.records.template import Template  # noqa: E402
-from normpos_grasp.templates import kernels  # noqa: E402
-from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many  # noqa: E402
-from normpos_grasp.templates.library import load_library  # noqa: E402
-from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins, prepare  # noqa: E402
-from normpos_grasp.templates.synthetic import render_views  # noqa: E402
+from normpos_grasp.camera.model import Camera
+from normpos_grasp.geometry.transforms import make_pose, random_rotation
+from normpos_grasp.records.template import Template
+from normpos_grasp.templates import kernels
+from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many
+from normpos_grasp.templates.library import load_library
+from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins, prepare
+from normpos_grasp.templates.synthetic import render_views
 
 REPO = Path(__file__).resolve().parents[1]
 CAM = Camera(np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]]), 640, 480)

@@ -7,17 +7,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.errors import MeshError, TemplateError  # noqa: E402
-from normpos_grasp.templates.library import (  # noqa: E402
+from normpos_grasp.errors import MeshError, TemplateError
+from normpos_grasp.templates.library import (
     TemplateLibrary,
     load_library,
     load_template,
     save_template,
 )
-from normpos_grasp.templates.mesh_check import check_mesh  # noqa: E402
+from normpos_grasp.templates.mesh_check import check_mesh
 
 REPO = Path(__file__).resolve().parents[1]
 LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"

@@ -12,12 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.geometry import make_pose  # noqa: E402
-from normpos_grasp.records.template import Symmetry, Template  # noqa: E402
-from normpos_grasp.templates import prepared  # noqa: E402
+from normpos_grasp.geometry import make_pose
+from normpos_grasp.records.template import Symmetry, Template
+from normpos_grasp.templates import prepared
 
 
 @pytest.fixture(autouse=True)

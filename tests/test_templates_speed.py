@@ -8,18 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-trimesh = pytest.importorskip("trimesh")
-
-from normpos_grasp.camera.model import Camera  # noqa: E402
-from normpos_grasp.geometry.transforms import make_pose, random_rotation  # noqa: E402
-from normpos_grasp.records.template import Template  # noqa: E402
-from normpos_grasp.templates import fit as fit_module  # noqa: E402
-from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best  # noqa: E402
-from normpos_grasp.templates.icp import point_to_point_normal_equations  # noqa: E402
-from normpos_grasp.templates.library import load_library  # noqa: E402
-from normpos_grasp.templates.prepared import prepare  # noqa: E402
-from normpos_grasp.templates.scoring import consistency_neighbours, evaluate, score_bounds  # noqa: E402
-from normpos_grasp.templates.synthetic import render_views  # noqa: E402
+from normpos_grasp.camera.model import Camera
+from normpos_grasp.geometry.transforms import make_pose, random_rotation
+from normpos_grasp.records.template import Template
+from normpos_grasp.templates import fit as fit_module
+from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best
+from normpos_grasp.templates.icp import point_to_point_normal_equations
+from normpos_grasp.templates.library import load_library
+from normpos_grasp.templates.prepared import prepare
+from normpos_grasp.templates.scoring import consistency_neighbours, evaluate, score_bounds
+from normpos_grasp.templates.synthetic import render_views
 
 REPO = Path(__file__).resolve().parents[1]
 CAM = Camera(np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]]), 640, 480)

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import pytest
-
-pytest.importorskip("trimesh")
+import trimesh  # noqa: F401  (a hard dependency: imported, never skipped)
 
 from normpos_grasp.templates.warmup import warm_up
 
