@@ -25,10 +25,10 @@ from normpos_grasp.grasp.candidates import CandidateOptions, candidates_for_obje
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.planning.evaluate import EvaluationOptions, evaluate_candidates
 from normpos_grasp.planning.rrt import MotionOptions, plan_joint_motion
-from normpos_grasp.planning.timing import TimingOptions, time_parameterise
+from normpos_grasp.planning.timing import PathPiece, TimingOptions, time_parameterise, time_path
 from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.normpos import NormPosition
-from normpos_grasp.records.plan import Evaluation, PickPlan, Target, Waypoint
+from normpos_grasp.records.plan import Evaluation, PickPlan, Target, Trajectory, Waypoint
 from normpos_grasp.records.template import TemplateFit
 from normpos_grasp.typing import BoolArray, FloatArray
 
@@ -226,8 +226,7 @@ def plan_from_candidates(
     t0 = time.perf_counter()
     chosen: Evaluation | None = None
     waypoints: tuple[Waypoint, ...] = ()
-    segments: list[FloatArray] = []
-    tcp_segments: list[FloatArray | None] = []
+    pieces: list[PathPiece] = []
     place_name = ""
     ranked = list(result.ranked)
     attempts = 0
@@ -237,7 +236,7 @@ def plan_from_candidates(
                 break
             attempts += 1
             try:
-                waypoints, segments, tcp_segments, place_name = _build_path(
+                waypoints, pieces, place_name = _build_path(
                     ev, targets[ev.candidate.target], world, arm, cell, home, opts
                 )
             except PlanningError as exc:
@@ -281,14 +280,7 @@ def plan_from_candidates(
     trajectory = None
     if chosen is not None:
         t0 = time.perf_counter()
-        trajectory = time_parameterise(
-            segments,
-            cell.motion.joint_velocity,
-            cell.motion.joint_acceleration,
-            tcp_segments,
-            cell.motion.tcp_speed_m_s,
-            opts.timing,
-        )
+        trajectory = _time_pieces(pieces, arm, cell, opts.timing)
         timing["timing"] = (time.perf_counter() - t0) * 1e3
     timing["total"] = (time.perf_counter() - t_start) * 1e3
     n_feasible = sum(1 for e in evaluations if e.feasible)
@@ -306,6 +298,23 @@ def plan_from_candidates(
         n_feasible=n_feasible,
         timing_ms=timing,
         place=place_name,
+    )
+
+
+def _time_pieces(pieces: list[PathPiece], arm: ArmModel, cell: CellConfig, options: TimingOptions) -> Trajectory:
+    """The plan's trajectory: Ruckig through the pieces (options.method 'ruckig'), or rest-to-rest trapezoids per
+    piece ('trapezoid', and where Ruckig's samples fail the planner's cap check)."""
+    motion = cell.motion
+    vmax = np.asarray(motion.joint_velocity, dtype=np.float64)
+    amax = np.asarray(motion.joint_acceleration, dtype=np.float64)
+    if options.method == "ruckig":
+        try:
+            tcp_accel = float(motion.tcp_acceleration_m_s2)
+            return time_path(pieces, vmax, amax, arm.lower, arm.upper, motion.tcp_speed_m_s, tcp_accel, options)
+        except PlanningError as exc:
+            logger.warning("Ruckig timing failed (%s); timing the path with rest-to-rest trapezoids", exc)
+    return time_parameterise(
+        [p.points for p in pieces], vmax, amax, [p.tcp for p in pieces], motion.tcp_speed_m_s, options
     )
 
 
@@ -421,7 +430,9 @@ def _build_path(
     cell: CellConfig,
     home: FloatArray,
     opts: PlanOptions,
-) -> tuple[tuple[Waypoint, ...], list[FloatArray], list[FloatArray | None], str]:
+) -> tuple[tuple[Waypoint, ...], list[PathPiece], str]:
+    """Waypoints and the pieces of the path (lines, and joint edges with the collision test a blend through their
+    ends must pass) of one evaluated grasp, and the place used; _PathRejected when some part has no path."""
     if ev.q is None or ev.world_from_tcp is None:
         raise _PathRejected("evaluation carries no configurations", "path")
     tool = cell.tool
@@ -510,18 +521,23 @@ def _build_path(
         wp("place", seg_place[-1]),
         wp("post_place", seg_post[-1]),
     )
-    segments: list[FloatArray] = []
-    tcp_segments: list[FloatArray | None] = []
-    for k in range(len(transfer_in) - 1):
-        segments.append(np.stack([transfer_in[k], transfer_in[k + 1]]))
-        tcp_segments.append(None)
-    for seg, tcp in ((seg_entry, tcp_entry), (seg_pre, tcp_pre), (seg_lift, tcp_lift), (seg_exit, tcp_exit)):
-        segments.append(seg)
-        tcp_segments.append(tcp)
-    for k in range(len(transfer_out) - 1):
-        segments.append(np.stack([transfer_out[k], transfer_out[k + 1]]))
-        tcp_segments.append(None)
-    for seg, tcp in ((seg_place, tcp_place), (seg_post, tcp_post)):
-        segments.append(seg)
-        tcp_segments.append(tcp)
-    return waypoints, segments, tcp_segments, place.name
+
+    def clear_empty(qs: FloatArray) -> bool:  # a blended transfer into the bin, empty-handed
+        return all(free_empty(q) for q in qs[~world.configs_clear(qs, opening)])
+
+    def clear_held(qs: FloatArray) -> bool:  # a blended transfer to the place, holding the object
+        with world.holding(target.name, target.mesh, tcp_from_object):  # type: ignore[arg-type]
+            return clear_empty(qs)
+
+    # stops: at the grasp and the place (the gripper acts) and at the end; pre_grasp and the other waypoints are
+    # passed at speed where the path allows (time_path)
+    pieces = [
+        PathPiece(np.stack(transfer_in[k : k + 2]), None, False, clear_empty) for k in range(len(transfer_in) - 1)
+    ]
+    pieces += [PathPiece(seg_entry, tcp_entry), PathPiece(seg_pre, tcp_pre, rest_after=True)]
+    pieces += [PathPiece(seg_lift, tcp_lift), PathPiece(seg_exit, tcp_exit)]
+    pieces += [
+        PathPiece(np.stack(transfer_out[k : k + 2]), None, False, clear_held) for k in range(len(transfer_out) - 1)
+    ]
+    pieces += [PathPiece(seg_place, tcp_place, rest_after=True), PathPiece(seg_post, tcp_post, rest_after=True)]
+    return waypoints, pieces, place.name

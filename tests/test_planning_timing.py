@@ -1,0 +1,209 @@
+"""Ruckig timing of planned paths (planning.timing.time_path): time-optimality against the closed-form jerk-limited
+profile, caps on the samples (the execution safety checks), exact joint edges and Cartesian lines, blends through
+waypoints only where the path allows them, and the planner's plans checked as execution checks them."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from normpos_grasp.cell import CellConfig, load_cell
+from normpos_grasp.execution.plan import check_plan, parse_plan
+from normpos_grasp.execution.safety import SafetyLimits
+from normpos_grasp.geometry import make_pose
+from normpos_grasp.kinematics import IKOptions, Robot
+from normpos_grasp.planning import plan_pick
+from normpos_grasp.planning.plan import PlanOptions
+from normpos_grasp.planning.timing import PathPiece, TimingOptions, time_path
+from normpos_grasp.records.plan import Trajectory
+from normpos_grasp.records.template import Template, TemplateFit
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cells"
+VMAX, AMAX = np.full(6, 2.5), np.full(6, 5.0)
+LOWER, UPPER = np.full(6, -2 * math.pi), np.full(6, 2 * math.pi)
+OPTS = TimingOptions()
+SHARE = OPTS.cap_share
+ROBOT = Robot.load("ur5e")
+TOOL_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+NEAR = np.array([0.0, -1.2, 1.4, -1.8, -1.57, 0.0])
+
+
+def _limits() -> SafetyLimits:
+    lim = SafetyLimits.for_model("ur5e", max_joint_accel=float(AMAX[0]))
+    return SafetyLimits(
+        "ur5e", lim.q_lower, lim.q_upper, VMAX.copy(), AMAX.copy(), lim.workspace_min, lim.workspace_max
+    )
+
+
+def _jerk(traj: Trajectory) -> np.ndarray:
+    """Third finite differences where three consecutive intervals are regular (a weighted mean of the true jerk)."""
+    uniform = np.isclose(np.diff(traj.t), OPTS.dt_s, rtol=0, atol=1e-9)
+    i = np.flatnonzero(uniform[:-2] & uniform[1:-1] & uniform[2:])
+    q = traj.q
+    return (q[i + 3] - 3 * q[i + 2] + 3 * q[i + 1] - q[i]) / OPTS.dt_s**3
+
+
+def _line_samples(start: np.ndarray, end: np.ndarray, step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """UR5e joint samples (K, 6) of the straight flange line start -> end (tool down), 1 cm apart, one branch."""
+    n = max(int(math.ceil(np.linalg.norm(end - start) / step)), 1)
+    tcp = start + np.linspace(0.0, 1.0, n + 1)[:, None] * (end - start)
+    qs, near = [], NEAR
+    for p in tcp:
+        sol = ROBOT.ik(make_pose(TOOL_DOWN, p), near, IKOptions(all_branches=False))
+        near = sol[0]
+        qs.append(near)
+    return np.array(qs), tcp
+
+
+def _flange(q: np.ndarray) -> np.ndarray:
+    return ROBOT.fk_batch(q)[:, :3, 3]
+
+
+def test_rest_to_rest_edge_is_time_optimal_and_exact() -> None:
+    a = np.array([0.0, -1.5, 1.5, -1.5, -1.5, 0.0])
+    b = a + np.array([2.0, -0.6, 0.4, 0.0, 0.3, -1.0])  # joint 0 leads (2 rad)
+    traj = time_path([PathPiece(np.stack([a, b]), rest_after=True)], VMAX, AMAX, LOWER, UPPER, options=OPTS)
+    v, acc, j = 2.5 * SHARE, 5.0 * SHARE, OPTS.jerk_rad_s3 * SHARE
+    # closed-form duration of the jerk-limited rest-to-rest profile reaching cruise speed: D/v + v/a + a/j
+    assert traj.duration_s == pytest.approx(2.0 / v + v / acc + acc / j, rel=1e-6)
+    direction = (b - a) / np.linalg.norm(b - a)
+    rel = traj.q - a
+    assert np.abs(rel - np.outer(rel @ direction, direction)).max() < 1e-12  # on the straight edge
+    np.testing.assert_array_equal(traj.q[0], a)
+    np.testing.assert_array_equal(traj.q[-1], b)
+    _limits().check_trajectory(traj.t, traj.q)  # speed and acceleration caps by finite differences
+    assert np.abs(_jerk(traj)).max() <= OPTS.jerk_rad_s3 * (1 + 1e-6)
+    assert np.abs(traj.qd[-1]).max() == pytest.approx(0.0, abs=1e-9)
+
+
+def test_cartesian_line_stays_on_its_line_within_the_tcp_caps() -> None:
+    q, tcp = _line_samples(np.array([0.45, 0.1, 0.35]), np.array([0.45, 0.1, 0.15]))
+    traj = time_path([PathPiece(q, tcp, rest_after=True)], VMAX, AMAX, LOWER, UPPER, 0.4, 2.0, OPTS)
+    p = _flange(traj.q)
+    u = (tcp[-1] - tcp[0]) / np.linalg.norm(tcp[-1] - tcp[0])
+    rel = p - tcp[0]
+    along = rel @ u
+    assert np.linalg.norm(rel - np.outer(along, u), axis=1).max() < 2e-6  # m: the spline through 1 cm IK samples
+    assert np.all(np.diff(along) >= -1e-9)  # never backwards
+    speed = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.diff(traj.t)
+    assert speed.max() <= 0.4 * (1 + 1e-3)
+    _limits().check_trajectory(traj.t, traj.q)
+    assert traj.duration_s >= 0.2 / 0.4  # m / (m/s)
+
+
+def test_collinear_lines_pass_their_common_waypoint_at_speed() -> None:
+    q1, tcp1 = _line_samples(np.array([0.45, 0.1, 0.35]), np.array([0.45, 0.1, 0.25]))
+    q2, tcp2 = _line_samples(np.array([0.45, 0.1, 0.25]), np.array([0.45, 0.1, 0.15]))
+    q2 = q2 + 2 * math.pi * np.round((q1[-1] - q2[0]) / (2 * math.pi))
+    pieces = [PathPiece(q1, tcp1), PathPiece(q2, tcp2, rest_after=True)]
+    blended = time_path(pieces, VMAX, AMAX, LOWER, UPPER, 0.4, 2.0, OPTS)
+    stopped = time_path(pieces, VMAX, AMAX, LOWER, UPPER, 0.4, 2.0, TimingOptions(blend=False))
+    for traj in (blended, stopped):
+        gap = np.abs(traj.q - q1[-1]).max(axis=1)
+        assert gap.min() == 0.0  # the common waypoint is a sample (execution splits the stream there)
+        _limits().check_trajectory(traj.t, traj.q)
+    k = int(np.argmin(np.abs(blended.q - q1[-1]).max(axis=1)))
+    tcp_speed = np.linalg.norm(np.diff(_flange(blended.q[k - 1 : k + 2]), axis=0), axis=1) / np.diff(
+        blended.t[k - 1 : k + 2]
+    )
+    assert tcp_speed.min() > 0.3  # m/s: passing, not stopping
+    k = int(np.argmin(np.abs(stopped.q - q1[-1]).max(axis=1)))
+    assert np.abs(stopped.qd[k]).max() < 1e-9
+    assert blended.duration_s < stopped.duration_s - 0.1
+
+
+def test_blend_into_a_line_is_checked_and_falls_back_to_a_stop() -> None:
+    q_line, tcp = _line_samples(np.array([0.45, 0.1, 0.30]), np.array([0.45, 0.1, 0.15]))
+    home = q_line[0] + np.array([0.8, -0.3, 0.2, 0.1, 0.0, 0.5])
+    checked: list[np.ndarray] = []
+
+    def free(qs: np.ndarray) -> bool:
+        checked.append(qs)
+        return True
+
+    edge = np.stack([home, q_line[0]])
+    blended = time_path(
+        [PathPiece(edge, None, False, free), PathPiece(q_line, tcp, rest_after=True)],
+        VMAX,
+        AMAX,
+        LOWER,
+        UPPER,
+        0.4,
+        2.0,
+        OPTS,
+    )
+    assert checked, "the blended transfer was not collision-checked"
+    steps = np.abs(np.diff(checked[0], axis=0)).max(axis=1)
+    assert steps.max() <= OPTS.check_step_rad + 1e-9  # checked as densely as the planner checks its edges
+    k = int(np.argmin(np.abs(blended.q - q_line[0]).max(axis=1)))
+    assert np.abs(blended.q[k] - q_line[0]).max() == 0.0
+    assert np.abs(blended.qd[k]).max() > 0.1  # rad/s: entering the line at speed
+    _limits().check_trajectory(blended.t, blended.q)
+    # the TCP is on the line after the junction, as before
+    p = _flange(blended.q[k:])
+    u = (tcp[-1] - tcp[0]) / np.linalg.norm(tcp[-1] - tcp[0])
+    rel = p - tcp[0]
+    assert np.linalg.norm(rel - np.outer(rel @ u, u), axis=1).max() < 2e-6
+
+    blocked = time_path(
+        [PathPiece(edge, None, False, lambda qs: False), PathPiece(q_line, tcp, rest_after=True)],
+        VMAX,
+        AMAX,
+        LOWER,
+        UPPER,
+        0.4,
+        2.0,
+        OPTS,
+    )
+    k = int(np.argmin(np.abs(blocked.q - q_line[0]).max(axis=1)))
+    assert np.abs(blocked.qd[k]).max() < 1e-9  # rests at the junction
+    direction = (q_line[0] - home) / np.linalg.norm(q_line[0] - home)
+    rel = blocked.q[: k + 1] - home
+    assert np.abs(rel - np.outer(rel @ direction, direction)).max() < 1e-12  # and follows the checked edge
+    assert blocked.duration_s > blended.duration_s
+
+
+def test_short_line_lowers_its_passing_speeds() -> None:
+    q1, tcp1 = _line_samples(np.array([0.45, 0.1, 0.30]), np.array([0.45, 0.1, 0.295]), 0.0025)
+    q2, tcp2 = _line_samples(np.array([0.45, 0.1, 0.295]), np.array([0.45, 0.1, 0.15]))
+    q2 = q2 + 2 * math.pi * np.round((q1[-1] - q2[0]) / (2 * math.pi))
+    home = q1[0] + np.array([0.5, -0.2, 0.1, 0.0, 0.0, 0.3])
+    pieces = [
+        PathPiece(np.stack([home, q1[0]]), None, False, lambda qs: True),
+        PathPiece(q1, tcp1),  # 5 mm: too short to pass both ends at cruise speed
+        PathPiece(q2, tcp2, rest_after=True),
+    ]
+    traj = time_path(pieces, VMAX, AMAX, LOWER, UPPER, 0.4, 2.0, OPTS)
+    k0 = int(np.argmin(np.abs(traj.q - q1[0]).max(axis=1)))
+    along = (_flange(traj.q[k0:]) - tcp1[0]) @ np.array([0.0, 0.0, -1.0])
+    assert np.all(np.diff(along) >= -1e-9)  # the TCP never moves back up the line
+    _limits().check_trajectory(traj.t, traj.q)
+
+
+def _box_plan(timing: TimingOptions) -> tuple[dict, CellConfig]:
+    cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
+    part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
+    fit = TemplateFit(part, make_pose(None, [0.5, 0.05, 0.025]), 1.0, 0.0, 1.0, 1.0, 0.0, True, instance_id=1)
+    plan = plan_pick([fit], [], cell, PlanOptions(timing=timing))
+    assert plan.status == "ok" and plan.trajectory is not None
+    return plan.to_json(), cell
+
+
+def test_planned_trajectory_passes_the_execution_checks_and_stops_at_the_gripper() -> None:
+    doc, cell = _box_plan(TimingOptions())
+    before, _ = _box_plan(TimingOptions(method="trapezoid"))
+    limits = SafetyLimits.from_cell(cell)
+    parsed = parse_plan(doc)
+    check_plan(parsed, limits)  # every sample: joint limits, workspace, speed and acceleration caps
+    assert parsed.traj_t is not None and parsed.traj_q is not None
+    qd = np.diff(parsed.traj_q, axis=0) / np.diff(parsed.traj_t)[:, None]
+    for name in ("grasp", "place"):  # the gripper acts there: the arm is at rest
+        q = parsed.q[parsed.names.index(name)]
+        k = int(np.argmin(np.abs(parsed.traj_q - q).max(axis=1)))
+        assert np.abs(parsed.traj_q[k] - q).max() < 1e-8
+        assert np.abs(qd[k - 1]).max() < 0.05 and np.abs(qd[k]).max() < 0.05  # rad/s over one sample
+    assert doc["trajectory"]["duration_s"] < before["trajectory"]["duration_s"]
