@@ -66,17 +66,20 @@ def add_hand_eye_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="eye-to-hand: fixed camera, board on the flange; "
         "eye-in-hand: camera on the wrist, board fixed in the cell",
     )
-    p.add_argument("--images", nargs="+", type=Path, default=None, help="checkerboard images, one per pose")
+    p.add_argument(
+        "--images", nargs="+", type=Path, default=None, metavar="IMG", help="checkerboard images, one per pose"
+    )
     p.add_argument(
         "--poses",
         type=Path,
         required=True,
+        metavar="POSES.csv",
         help="CSV x,y,z,rx,ry,rz: base_from_flange per image (m, UR rotation vector), zero TCP; written by --record",
     )
     p.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
     p.add_argument("--square", type=_positive(1.0, "metres"), default=0.025, help="square edge, m (default 0.025)")
-    p.add_argument("--camera", type=Path, default=None, help="camera JSON with the intrinsics")
-    p.add_argument("--out", type=Path, default=None, help="camera JSON to write (may equal --camera)")
+    p.add_argument("--camera", type=Path, default=None, metavar="JSON", help="camera JSON with the intrinsics")
+    p.add_argument("--out", type=Path, default=None, metavar="JSON", help="camera JSON to write (may equal --camera)")
     p.add_argument(
         "--record",
         metavar="HOST",
@@ -123,7 +126,14 @@ def add_hand_eye_parser(subparsers: Any) -> argparse.ArgumentParser:
         default=3.0,
         help="tolerated touch-point distance, mm (default 3: the calibration, one image's board pose and the touch)",
     )
-    p.add_argument("--verify-images", nargs="+", type=Path, default=None, help="images at poses not used to calibrate")
+    p.add_argument(
+        "--verify-images",
+        nargs="+",
+        type=Path,
+        default=None,
+        metavar="IMG",
+        help="images at poses not used to calibrate",
+    )
     p.add_argument("--verify-poses", type=Path, default=None, help="CSV x,y,z,rx,ry,rz of the verification images")
     p.add_argument(
         "--max-verify-px",
