@@ -6,21 +6,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
+import trimesh
+from scipy.spatial import ConvexHull
 
 import normpos_grasp.sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco loads)
-
-mujoco = pytest.importorskip("mujoco")
-trimesh = pytest.importorskip("trimesh")
-from scipy.spatial import ConvexHull  # noqa: E402
-
-from normpos_grasp.errors import MeshError  # noqa: E402
-from normpos_grasp.records.template import Template  # noqa: E402
-from normpos_grasp.sim.physics import collision_pieces  # noqa: E402
-from normpos_grasp.sim.physics_decompose import MIN_THICKNESS_M, collision_hull, collision_hulls  # noqa: E402
-from normpos_grasp.sim.scene import SceneOptions, compose_scene, convex_pieces  # noqa: E402
-from normpos_grasp.templates.library import load_library  # noqa: E402
+from normpos_grasp.errors import MeshError
+from normpos_grasp.records.template import Template
+from normpos_grasp.sim.physics import collision_pieces
+from normpos_grasp.sim.physics_decompose import MIN_THICKNESS_M, collision_hull, collision_hulls
+from normpos_grasp.sim.scene import SceneOptions, compose_scene, convex_pieces
+from normpos_grasp.templates.library import load_library
 
 ROOT = Path(__file__).resolve().parents[1]
 
