@@ -15,6 +15,7 @@ moved: max joint travel after the signal (rad); cmds: motion commands after the 
 1-line: runs with exactly one error line and no traceback; bad: runs with any problem.
 
     .venv/bin/python benchmarks/bench_faults.py [--runs 5] [--cases sigint_movej,...] [--host 127.0.0.61] [--json F]
+        [--rt-priority 10]
 """
 
 from __future__ import annotations
@@ -34,17 +35,19 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--host", default="127.0.0.61")
     ap.add_argument("--json", type=Path, default=None, help="write every run's record here")
+    ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the emulator's loop (0: none)")
     args = ap.parse_args()
     cases = [c for c in args.cases.split(",") if c]
     results = []
     t0 = time.monotonic()
-    with tempfile.TemporaryDirectory() as tmp, Campaign(args.host, Path(tmp)) as campaign:
+    with tempfile.TemporaryDirectory() as tmp, Campaign(args.host, Path(tmp), rt_priority=args.rt_priority) as campaign:
         for _ in range(args.runs):
             for case in cases:
                 r = campaign.run(case)
                 results.append(r)
                 flag = "ok" if not r.problems() else "; ".join(r.problems())
-                print(f"  {case:18s} exit {r.exit_code}  rest {r.rest_s}  {flag}", flush=True)
+                rest = "-" if r.rest_s is None else f"{r.rest_s * 1000:.0f} ms"
+                print(f"  {case:18s} exit {r.exit_code}  rest {rest}  overruns {r.emu_overruns}  {flag}", flush=True)
     table = summarize(results)
     print(f"\n{len(results)} runs in {time.monotonic() - t0:.0f} s")
     head = (

@@ -88,6 +88,7 @@ class CaseResult:
     motion_after_stop: int | None = None
     motion_cmds_in_run: int | None = None
     send_gap_s: float = 0.0  # time.monotonic() before -> after sending the signal (campaign process scheduling)
+    emu_overruns: int = 0  # emulator control cycles late by > 20 ms during the run (a starved loop)
     # the arm must rest within this of the fault (a stall is seen only after DriverOptions.stale_state_s, 0.5 s)
     stop_budget_s: float = 0.1
 
@@ -193,7 +194,9 @@ class Campaign:
     """Runs cases against an emulator on `host` (restarted where a case kills it). Use as a context manager.
 
     stale_state_s: the CLI driver's DriverOptions.stale_state_s (a stall is seen only after it). exit_timeout_s: a
-    process still running this long after the fault counts as a hang (and is killed)."""
+    process still running this long after the fault counts as a hang (and is killed). rt_priority: SCHED_FIFO
+    priority of the emulator's 500 Hz loop (0: normal scheduling; on a loaded machine a starved loop makes the
+    emulated servo catch up in jumps, see `emu_overruns`)."""
 
     def __init__(
         self,
@@ -202,8 +205,10 @@ class Campaign:
         model: str = "ur5e",
         exit_timeout_s: float = 20.0,
         stale_state_s: float = 0.5,
+        rt_priority: int = 0,
     ) -> None:
         self.stale_state_s = stale_state_s
+        self.rt_priority = rt_priority
         self.host = host
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
@@ -223,8 +228,9 @@ class Campaign:
 
     def _ensure_emulator(self) -> EmulatorProcess:
         if self.emu is None or self.emu.proc is None or self.emu.proc.poll() is not None:
+            extra = ("--rt-priority", str(self.rt_priority)) if self.rt_priority > 0 else ()
             self.emu = EmulatorProcess(
-                self.host, self.model, ready_timeout_s=60.0, log_path=self.workdir / "emulator.log"
+                self.host, self.model, ready_timeout_s=60.0, log_path=self.workdir / "emulator.log", extra_args=extra
             ).start()
             self.emu.emu("unlock_delay", "0.5")
         return self.emu
@@ -306,6 +312,7 @@ class Campaign:
         sig_name, kind = case.split("_", 1)
         sig = signal.SIGINT if sig_name == "sigint" else signal.SIGTERM
         result = CaseResult(case, None, EXPECTED_EXIT[sig_name], False, False)
+        overruns0 = int(_emu_state(self.host)["overruns"])
         trace = _Trace(self.host)
         try:
             if kind == "movel":
@@ -330,6 +337,7 @@ class Campaign:
         finally:
             trace.close()
         self._controller_stop(t_fault, result)
+        result.emu_overruns = int(_emu_state(self.host)["overruns"]) - overruns0
         if len(ts):
             result.moved_after_fault_rad = float(np.max(np.abs(qs - q_fault)))
             speed = np.max(np.abs(qds), axis=1)

@@ -457,6 +457,7 @@ class EmulatedController:
             # speedStop(a): joint deceleration, rad/s^2; servoStop(a): tool deceleration, m/s^2 (ur_rtde default 10),
             # turned into a joint deceleration as for stopL
             a = self.in_double[off + 0]
+            log.debug("%s registers: %s", CMD_NAMES[cmd], self.in_double[off : off + 8])
             decel = (a if a > 0 else 10.0) if cmd == 15 else max((a if a > 0 else 10.0) * 2.0, 1.0)
             if isinstance(self.arm.motion, (SpeedControl, ServoControl)):
                 self.arm.stop(decel)
