@@ -23,6 +23,7 @@ from normpos_grasp.records.normpos import NormPosition
 from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.records.template import Template, TemplateFit
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_many
+from normpos_grasp.templates.select import one_pose_per_object
 from normpos_grasp.typing import FloatArray
 
 __all__ = ["FrameResult", "PipelineOptions", "ReuseOptions", "make_segmenter", "perceive", "process_frame"]
@@ -112,6 +113,7 @@ def perceive(
     todo = [n for n in normpositions if n.instance_id not in kept]
     fresh = iter(fit_many(todo, templates, opts.fit, FitContext(frame.camera, frame.depth_m), opts.fit_workers))
     fits = [kept[n.instance_id] if n.instance_id in kept else next(fresh) for n in normpositions]
+    fits = one_pose_per_object(fits, normpositions)  # fragments of one object: the best-explaining fit only
     timings["fit"] = _ms(t0)
     return FrameResult(frame, found, normpositions, fits, None, timings, len(normpositions) - len(todo))
 

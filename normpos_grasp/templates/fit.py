@@ -67,6 +67,10 @@ class FitOptions:
             template leaves coherent residuals).
         min_inlier_ratio, max_rmse_m (added to the median inlier distance), min_coverage (with depth image),
         min_coverage_no_depth (without), max_free_space_violation: acceptance thresholds.
+        min_explained_share / max_front_share (with a depth image): of the pose's whole camera-visible surface
+            (occluded and off-image parts included) at least this share must be explained by measured depth, and
+            at most this share may lie right behind a measured surface it does not explain (`PoseScore`): a small
+            fragment or a wrong template passed through a surface loses.
         ambiguity_ratio: a distinct pose (ADD-S > ambiguity_add_s * diameter or, for templates without a
             continuous symmetry, symmetry-aware ADD > ambiguity_add * diameter: a turned copy whose faces overlap
             the best pose's) scoring at least this share of the best makes the fit ambiguous (rejected).
@@ -105,6 +109,8 @@ class FitOptions:
     min_coverage: float = 0.8
     min_coverage_no_depth: float = 0.3
     max_free_space_violation: float = 0.08
+    min_explained_share: float = 0.35
+    max_front_share: float = 0.03
     ambiguity_ratio: float = 0.95
     class_ambiguity_ratio: float = 0.85
     ambiguity_add_s: float = 0.1
@@ -729,6 +735,16 @@ def _decide(
     min_cov = opts.min_coverage if ctx is not None else opts.min_coverage_no_depth
     if s.coverage < min_cov:
         reasons.append(f"visible-surface coverage {s.coverage:.2f} < {min_cov}")
+    if ctx is not None and s.explained_share < opts.min_explained_share:
+        reasons.append(
+            f"explained share {s.explained_share:.2f} < {opts.min_explained_share} (most of the model's visible "
+            "surface is occluded, off the image or unmeasured)"
+        )
+    if ctx is not None and s.front_share > opts.max_front_share:
+        reasons.append(
+            f"unexplained surface {s.front_share:.3f} > {opts.max_front_share} (the model lies right behind "
+            "measured points it does not explain)"
+        )
     if s.free_space_violation > opts.max_free_space_violation:
         reasons.append(
             f"free-space violation {s.free_space_violation:.2f} > {opts.max_free_space_violation} "
@@ -772,6 +788,8 @@ def _decide(
             "candidate_scores": [round(c.score.score, 4) for c in cands],
             "occluded_share": s.occluded_share,
             "consistency": s.consistency,
+            "explained_share": s.explained_share,
+            "front_share": s.front_share,
             "scale_note": "" if abs(best.scale - 1.0) < 0.005 else f"part is {100 * (best.scale - 1):+.1f} % vs CAD",
         },
     )

@@ -783,6 +783,43 @@ def depth_evidence(pv, nv, uv, depth, tol, rad):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
+def silhouette_evidence(pv, uv, depth, tol, rad, front_lim):  # type: ignore[no-untyped-def]
+    """Evidence of a pose over its whole camera-visible surface: pv (V, 3) visible template points (camera frame),
+    uv (V, 2) their pixels, depth (H, W) metres (0 = no reading).
+
+    Returns (in_image, explained, front): points whose pixel lies in the image; points explained (some valid
+    depth within +-rad pixels within tol of the point, as `depth_evidence`'s support); unexplained points whose
+    own pixel reads between tol and front_lim metres IN FRONT of the point (a measured surface running just in
+    front of the model: the model would lie right behind a surface it does not explain; a separate occluder
+    lies farther in front or touches only along a line).
+    """
+    hgt, wid = depth.shape
+    n_in = n_exp = n_front = 0
+    for i in range(pv.shape[0]):
+        u = uv[i, 0]
+        v = uv[i, 1]
+        if not (u >= 0 and u < wid and v >= 0 and v < hgt):
+            continue
+        n_in += 1
+        z = pv[i, 2]
+        closest = np.inf
+        for dv in range(-rad, rad + 1):
+            vv = min(max(v + dv, 0), hgt - 1)
+            for du in range(-rad, rad + 1):
+                uu = min(max(u + du, 0), wid - 1)
+                val = depth[vv, uu]
+                if val > 0 and np.isfinite(val):
+                    closest = min(closest, abs(val - z))
+        if closest <= tol:
+            n_exp += 1
+            continue
+        meas = depth[v, u]
+        if meas > 0 and np.isfinite(meas) and z - meas > tol and z - meas <= front_lim:
+            n_front += 1
+    return n_in, n_exp, n_front
+
+
+@njit(cache=True, nogil=True)
 def nearest_rows(query, data_t, k):  # type: ignore[no-untyped-def]
     """(N, k) indices of the k nearest columns of data_t (D, F) to each row of query (N, D), nearest first.
 

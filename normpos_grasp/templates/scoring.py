@@ -21,6 +21,9 @@ from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
 FREE_SPACE_WINDOW_PX = 2
+#: the band in front of the model (in inlier distances) where a measured surface counts as unexplained, not as
+#: a separate occluder
+FRONT_LIMIT_TOL = 3.0
 #: an inlier's offset along the template surface (beside it, past an edge) is at most this many sample spacings
 #: or this share of its inlier distance
 BESIDE_SPACINGS = 1.5
@@ -29,7 +32,13 @@ BESIDE_THR = 0.35
 
 @dataclass(frozen=True)
 class PoseScore:
-    """Evaluation of one pose. Shares in [0, 1]; rmse_m metres; n_visible template samples seen."""
+    """Evaluation of one pose. Shares in [0, 1]; rmse_m metres; n_visible template samples seen.
+
+    explained_share: share of ALL camera-visible template samples (occluded and outside the image included) that
+    measured depth explains; front_share: share of them under a measured surface running just in front of the
+    model (between tol and `FRONT_LIMIT_TOL` tol): measured points inside the silhouette the pose leaves
+    unexplained. Both from the depth image (1.0 and 0.0 without one).
+    """
 
     score: float
     inlier_ratio: float
@@ -39,6 +48,8 @@ class PoseScore:
     n_visible: int
     occluded_share: float
     consistency: float = 1.0
+    explained_share: float = 1.0
+    front_share: float = 0.0
 
 
 def visible_samples(
@@ -178,6 +189,11 @@ def evaluate(
         coverage = float(n_sup) / max(n_den, 1)
         fsv = float(n_vio + 0.5 * n_mis) / max(n_ng, 1)
         occ_share = float(n_occ) / n_vis
+        _, n_exp, n_front = kernels.silhouette_evidence(
+            pv, uv, np.ascontiguousarray(depth_m, dtype=np.float64), tol, FREE_SPACE_WINDOW_PX, FRONT_LIMIT_TOL * tol
+        )
+        explained = float(n_exp) / n_vis
+        front = float(n_front) / n_vis
     elif meas_tree is not None:  # (never None here: checked above)
         grazing = np.abs(np.einsum("ij,ij->i", nv, pv)) < 0.3 * np.linalg.norm(pv, axis=1)
         world_v = pv @ invert_pose(cff)[:3, :3].T + invert_pose(cff)[:3, 3]
@@ -196,8 +212,9 @@ def evaluate(
         violating = has & ~grazing & (np.nan_to_num(zm, nan=0.0) - pv[:, 2] > np.maximum(3.0 * tol, 0.01))
         fsv = float(violating.sum()) / max(int((~grazing).sum()), 1)
         occ_share = 0.0
+        explained, front = 1.0, 0.0
     score = _combine(inlier_ratio, rmse, coverage, fsv, tol) * consistency
-    return PoseScore(score, inlier_ratio, rmse, coverage, fsv, n_vis, occ_share, consistency)
+    return PoseScore(score, inlier_ratio, rmse, coverage, fsv, n_vis, occ_share, consistency, explained, front)
 
 
 def _combine(inlier_ratio: float, rmse: float, coverage: float, fsv: float, tol: float) -> float:
