@@ -41,6 +41,8 @@ def load_ik(model: str) -> IKSolver | None:
     except (ImportError, AttributeError, NormposError) as exc:
         log.warning("no IK for %s (%s): moveL/moveJ_IK will be refused", model, exc)
         return None
+    # the first call loads the compiled one-pose IK (compiles it once per install): here, not inside the control loop
+    robot.ik(robot.fk([0.0, -1.0, 1.0, -1.0, -1.5, 0.0]))
 
     def ik(base_from_flange: Any, q_near: Any) -> Any:
         return robot.ik(base_from_flange, q_near)
