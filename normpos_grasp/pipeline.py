@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
+from normpos_grasp.measure.depth_bias import DepthBiasEstimate, DepthBiasOptions, check_frame_depth
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.change import unchanged
@@ -51,6 +52,8 @@ class PipelineOptions:
 
     fit_workers: threads fitting a frame's objects (`fit_many`); 1 in processes that already run one per core.
     reuse: how `perceive(..., previous=...)` decides an object did not move.
+    depth_bias: `process_frame` estimates the frame's depth bias from the cell's support plane with these settings
+        and removes it (`measure.depth_bias.check_frame_depth`); None turns the check off.
     """
 
     measure: MeasureOptions = field(default_factory=MeasureOptions)
@@ -58,6 +61,7 @@ class PipelineOptions:
     plan: PlanOptions = field(default_factory=PlanOptions)
     fit_workers: int = 2
     reuse: ReuseOptions = field(default_factory=ReuseOptions)
+    depth_bias: DepthBiasOptions | None = field(default_factory=DepthBiasOptions)
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,6 +70,8 @@ class FrameResult:
 
     timings_ms: wall time per stage ('segment', 'measure', 'fit', 'plan'), milliseconds.
     reused_fits: fits kept from the previous frame (objects that did not move), the others were fitted anew.
+    depth_check: the frame's depth bias estimate and warnings (`process_frame` with a support plane), else None;
+        `frame` is then the corrected frame.
     """
 
     frame: RGBDFrame
@@ -75,6 +81,7 @@ class FrameResult:
     plan: PickPlan | None
     timings_ms: dict[str, float]
     reused_fits: int = 0
+    depth_check: DepthBiasEstimate | None = None
 
     @property
     def accepted_fits(self) -> list[TemplateFit]:
@@ -149,11 +156,14 @@ def process_frame(
     if frame.camera.world_from_camera is None:
         raise InputError("planning needs a camera with world_from_camera; calibrate extrinsics first")
     opts = options or PipelineOptions()
+    check = None
+    if opts.depth_bias is not None:
+        frame, check = check_frame_depth(frame, cell, opts.depth_bias)
     result = perceive(frame, segmenter, library, opts, instances)
     t0 = time.perf_counter()
     plan = plan_pick(result.fits, result.normpositions, cell, opts.plan, start_q)
     timings = dict(result.timings_ms, plan=_ms(t0))
-    return FrameResult(frame, result.instances, result.normpositions, result.fits, plan, timings)
+    return FrameResult(frame, result.instances, result.normpositions, result.fits, plan, timings, depth_check=check)
 
 
 def _ms(t0: float) -> float:

@@ -29,7 +29,7 @@ def _bin_floor_plane(sf: SyntheticFrame) -> np.ndarray:
 def frame_and_bias(request: pytest.FixtureRequest) -> tuple[SyntheticFrame, float]:
     bias = float(request.param)
     sf = generate_frame(
-        SceneOptions(count=6, seed=21),
+        SceneOptions(count=3, seed=21),
         sensor_preset("d435", depth_bias_m=bias),
         CameraOptions(distance_m=(0.6, 0.8)),
         seed=5,
@@ -70,3 +70,33 @@ def test_frame_that_looks_wrong_is_reported(frame_and_bias: tuple[SyntheticFrame
 def test_options_validated() -> None:
     with pytest.raises(InputError):
         DepthBiasOptions(stride=0)
+
+
+@pytest.mark.parametrize("bias", [0.0, 0.007])
+def test_pipeline_check_from_the_cell(bias: float) -> None:
+    """`check_frame_depth`: the cell's bin floor gives the plane; the bias is removed, a frame without stays as is."""
+    from pathlib import Path
+
+    from normpos_grasp.cell.config import load_cell
+    from normpos_grasp.measure.depth_bias import check_frame_depth
+    from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene
+    from normpos_grasp.sim.dataset import render_frame
+    from normpos_grasp.sim.render import make_renderer
+
+    cells = Path(__file__).resolve().parents[1] / "normpos_grasp" / "examples" / "cells"
+    cell = load_cell(cells / "ur5e_bin_parallel.yaml")
+    layout = compose_cell_scene(cell, 3, seed=4)
+    cam = cell_camera(cell)
+    renderer = make_renderer(layout, cam.width, cam.height, "raycast")
+    try:
+        sf = render_frame(layout, renderer, cam, sensor_preset("d435", depth_bias_m=bias), np.random.default_rng(2))
+    finally:
+        renderer.close()
+    fixed, est = check_frame_depth(sf.frame, cell)
+    assert est is not None and est.ok, est
+    assert abs(est.bias_m - bias) < 0.001
+    if bias == 0.0:
+        assert fixed is sf.frame
+    else:
+        valid = sf.frame.depth_m > 0
+        assert np.allclose(sf.frame.depth_m[valid] - fixed.depth_m[valid], est.bias_m)

@@ -19,11 +19,11 @@ uses ground truth; `correct_depth` applies the bias (z-depth, positive = the sen
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from normpos_grasp.camera.model import Camera
+from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
 from normpos_grasp.measure.measure import pixel_rays
@@ -46,6 +46,8 @@ class DepthBiasOptions:
         min_plane_pixels: fewer full-resolution plane pixels -> no estimate.
         max_bias_m: a larger |bias| (metres) makes the frame look wrong (warned; not corrected by `corrected`).
         max_tilt_deg: a measured plane tilted more than this from the expected one is warned about (degrees).
+        min_correct_m: `check_frame_depth` leaves the depth as it is when |bias| is below this (metres: within the
+            estimate's own uncertainty, so an unbiased frame stays bit-identical).
     """
 
     stride: int = 4
@@ -58,6 +60,7 @@ class DepthBiasOptions:
     min_plane_pixels: int = 2000
     max_bias_m: float = 0.03
     max_tilt_deg: float = 3.0
+    min_correct_m: float = 0.002
 
     def __post_init__(self) -> None:
         if not (1 <= self.stride <= 32 and self.search_m > 0 and self.inlier_m > 0 and self.ransac_iterations >= 1):
@@ -229,3 +232,25 @@ def correct_depth(depth_m: FloatArray, bias_m: float) -> FloatArray:
     if not bias_m:
         return d
     return np.where(np.isfinite(d) & (d > 0), np.maximum(d - bias_m, 0.0), d)
+
+
+def check_frame_depth(
+    frame: RGBDFrame, cell: CellConfig, options: DepthBiasOptions | None = None
+) -> tuple[RGBDFrame, DepthBiasEstimate | None]:
+    """The frame with its depth bias removed (`estimate_depth_bias` on the cell's support plane) and the estimate.
+
+    Unchanged frame and None without extrinsics or a support plane (bin or table) in the cell; unchanged frame when
+    the bias is below `min_correct_m` or not trustworthy (`DepthBiasEstimate.corrected` is 0). Warnings are logged.
+    """
+    opts = options or DepthBiasOptions()
+    wfc = frame.camera.world_from_camera
+    plane_world = support_plane_world(cell)
+    if wfc is None or plane_world is None:
+        return frame, None
+    est = estimate_depth_bias(frame.camera, frame.depth_m, plane_in_camera(plane_world, wfc), opts)
+    bias = est.corrected
+    if abs(bias) < opts.min_correct_m:
+        return frame, est
+    logger.info("depth bias %+.1f mm removed (support plane, %d pixels)", bias * 1000, est.n_plane)
+    fixed = correct_depth(frame.depth_m, bias).astype(np.asarray(frame.depth_m).dtype, copy=False)
+    return replace(frame, depth_m=fixed), est
