@@ -522,7 +522,12 @@ def _build_path(
         wp("post_place", seg_post[-1]),
     )
 
+    box_lo, box_hi = cell.motion.workspace_min, cell.motion.workspace_max
+
     def clear_empty(qs: FloatArray) -> bool:  # a blended transfer into the bin, empty-handed
+        tcp = (fk(qs) @ flange_from_tcp)[:, :3, 3]  # execution refuses a TCP outside the workspace box
+        if np.any(tcp < box_lo) or np.any(tcp > box_hi):
+            return False
         return all(free_empty(q) for q in qs[~world.configs_clear(qs, opening)])
 
     def clear_held(qs: FloatArray) -> bool:  # a blended transfer to the place, holding the object
