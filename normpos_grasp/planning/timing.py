@@ -335,11 +335,10 @@ def time_path(
     PlanningError when a cap is exceeded.
     """
     opts = options or TimingOptions()
-    ro = opts
-    share = ro.cap_share
+    share = opts.cap_share
     vmax = np.asarray(vmax, dtype=np.float64)
     amax = np.asarray(amax, dtype=np.float64)
-    caps = (vmax * share, amax * share, np.full(6, ro.jerk_rad_s3 * share))
+    caps = (vmax * share, amax * share, np.full(6, opts.jerk_rad_s3 * share))
     kept: list[PathPiece] = []
     for p in pieces:  # pieces without motion drop out; a stop at the end of one moves to the piece before
         if np.abs(p.points[-1] - p.points[0]).max() > 1e-12:
@@ -356,7 +355,7 @@ def time_path(
     n = len(pieces)
     # speed (m/s along the neighbouring line) at the end of piece k; 0: rest
     speed = np.zeros(n)
-    if ro.blend:
+    if opts.blend:
         for k in range(n - 1):
             a, b = pieces[k], pieces[k + 1]
             if a.rest_after:
@@ -373,7 +372,7 @@ def time_path(
             elif lb is not None and a.tcp is None and a.free is not None:
                 speed[k] = lb.v_max
     for _ in range(4 * n + 8):
-        profiles, retry = _profiles(pieces, lines, speed, caps, lower, upper, ro)
+        profiles, retry = _profiles(pieces, lines, speed, caps, lower, upper, opts)
         if not retry:
             break
     else:
@@ -403,7 +402,7 @@ def _profiles(
     caps: tuple[FloatArray, FloatArray, FloatArray],
     lower: FloatArray,
     upper: FloatArray,
-    ro: TimingOptions,
+    opts: TimingOptions,
 ) -> tuple[list[tuple[str, Any, Any]], bool]:
     """One profile per piece for the passing speeds `speed` (lowered in place where a piece cannot take them);
     returns (profiles, retry): retry is True when a speed was lowered and the profiles must be recomputed."""
@@ -434,7 +433,7 @@ def _profiles(
         goal = lines[k + 1].joint_state(False, v_out) if v_out > 0.0 else (b, np.zeros(6), np.zeros(6))
         try:
             traj = _ruckig(start, goal, caps)
-            ok = _blend_ok(traj, p, lower, upper, caps[0], ro.check_step_rad)
+            ok = _blend_ok(traj, p, lower, upper, caps[0], opts.check_step_rad)
         except PlanningError:
             ok = False
         if not ok:  # rest at both ends of this joint motion
