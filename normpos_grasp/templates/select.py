@@ -41,9 +41,14 @@ def model_overlap(a: TemplateFit, b: TemplateFit, distance_m: float | None = Non
 
     distance_m: default max(4 mm, 5 % of the smaller template diameter). 1.0 for the same pose, 0 for disjoint models.
     """
-    pa, pb = _posed_samples(a), _posed_samples(b)
+    prep_a, prep_b = prepare(a.template), prepare(b.template)
     if distance_m is None:
-        distance_m = max(0.004, 0.05 * min(prepare(a.template).diameter, prepare(b.template).diameter))
+        distance_m = max(0.004, 0.05 * min(prep_a.diameter, prep_b.diameter))
+    ca = a.frame_from_object[:3, :3] @ (prep_a.centroid * a.scale) + a.frame_from_object[:3, 3]
+    cb = b.frame_from_object[:3, :3] @ (prep_b.centroid * b.scale) + b.frame_from_object[:3, 3]
+    if np.linalg.norm(ca - cb) > prep_a.diameter * a.scale + prep_b.diameter * b.scale + distance_m:
+        return 0.0  # too far apart to touch
+    pa, pb = _posed_samples(a), _posed_samples(b)
     da, _ = cKDTree(pb).query(pa, distance_upper_bound=distance_m)
     db, _ = cKDTree(pa).query(pb, distance_upper_bound=distance_m)
     return float(max(np.mean(np.isfinite(da)), np.mean(np.isfinite(db))))
