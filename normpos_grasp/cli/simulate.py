@@ -1,11 +1,31 @@
-"""`normpos-grasp simulate`: offline grasp simulation of a cell over synthetic bin scenes, judged by physics."""
+"""`normpos-grasp simulate`: offline grasp simulation of a cell over synthetic bin scenes, judged by physics.
+
+The run folder --out receives manifest.json (the run's parameters) first, scenes/scene_NNNNNN.json as each
+scene finishes, and picks.csv, the plots, timing.json and summary.json (last: the run is complete) at the end.
+SIGINT / SIGTERM end the worker processes, keep the finished scenes and exit 130 / 143; `--resume` runs the
+remaining scenes of such a run (refused when the parameters differ) and gives the same picks.csv, summary.json
+and plots as an uninterrupted run. An --out that holds files is refused unless --overwrite or --resume.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
+import sys
 import time
+from pathlib import Path
 from typing import Any
+
+from normpos_grasp.cli.args import OVERWRITE_HELP, check_out_dir, int_in
+from normpos_grasp.sim.sensor import SENSOR_PRESETS
+
+#: bounds of the numeric options (a larger value is refused with this range)
+MAX_SCENES = 100_000
+MAX_COUNT = 100
+MAX_WORKERS = 256
+MAX_RETRIES = 10
+MIN_SIDE, MAX_SIDE = 16, 4096
 
 
 def register(subparsers: Any) -> None:
@@ -14,16 +34,25 @@ def register(subparsers: Any) -> None:
         help="simulate bin clearing offline: real pipeline on rendered noisy frames, grasps checked in physics",
         description="For each synthetic scene, render the cell's bin through the sensor model, run segmentation, "
         "measurement, template fitting and pick planning on the noisy frame, validate the chosen grasp in MuJoCo "
-        "against the true part poses, and repeat until the bin is cleared. Writes picks.csv, summary.json, "
-        "timing.json and PNG plots to --out.",
+        "against the true part poses, and repeat until the bin is cleared. Writes manifest.json, one file per "
+        "finished scene under scenes/, and at the end picks.csv, timing.json, PNG plots and summary.json to "
+        "--out. An interrupted run (Ctrl-C, SIGTERM) keeps its finished scenes: continue it with --resume.",
     )
     parser.add_argument("--cell", required=True, help="cell YAML (needs a bin and a camera pose)")
-    parser.add_argument("--scenes", type=int, default=10, help="number of scenes")
-    parser.add_argument("--sensor", default="d435", help="sensor model preset (d435, d455, zed2, zivid, ideal)")
-    parser.add_argument("--seed", type=int, default=0, help="batch seed (scenes are seeded from it)")
-    parser.add_argument("--out", required=True, help="output folder")
+    parser.add_argument("--scenes", type=int_in(1, MAX_SCENES), default=10, help=f"number of scenes, 1..{MAX_SCENES}")
+    parser.add_argument("--sensor", default="d435", choices=sorted(SENSOR_PRESETS), help="sensor model preset")
+    parser.add_argument("--seed", type=int_in(0, 2**32 - 1), default=0, help="batch seed (scenes are seeded from it)")
+    parser.add_argument("--out", required=True, help="output folder (must be empty or absent, see --overwrite)")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    mode.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the interrupted run in --out: its finished scenes are kept, the others run (the other "
+        "options must be those of the first command; --workers / --ray may differ)",
+    )
     parser.add_argument("--parts", default="default", help="'default' or comma-separated part names")
-    parser.add_argument("--count", type=int, default=8, help="parts per scene")
+    parser.add_argument("--count", type=int_in(1, MAX_COUNT), default=8, help=f"parts per scene, 1..{MAX_COUNT}")
     parser.add_argument(
         "--segmenter",
         default="model",
@@ -32,10 +61,14 @@ def register(subparsers: Any) -> None:
         "(ideal segmenter); depth: model-free depth segmenter",
     )
     parser.add_argument("--gripper", default="", help="physics gripper override (2f85, 2f140, suction)")
-    parser.add_argument("--resolution", default="640x480", help="image size WxH in pixels")
+    parser.add_argument(
+        "--resolution", default="640x480", help=f"image size WxH in pixels, each side {MIN_SIDE}..{MAX_SIDE}"
+    )
     parser.add_argument("--renderer", default="auto", choices=("auto", "mujoco", "raycast"))
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--workers", type=int, default=1, help="local worker processes")
+    group.add_argument(
+        "--workers", type=int_in(1, MAX_WORKERS), default=1, help=f"local worker processes, 1..{MAX_WORKERS}"
+    )
     group.add_argument(
         "--ray",
         default=None,
@@ -44,7 +77,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--retries",
-        type=int,
+        type=int_in(0, MAX_RETRIES),
         default=1,
         help="fresh captures (everything fitted anew) before a 'no feasible grasp' ends a scene",
     )
@@ -71,10 +104,23 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from normpos_grasp.cell.config import load_cell
+    from normpos_grasp.errors import InputError, SimulationError
     from normpos_grasp.sim.cameras import parse_resolution
-    from normpos_grasp.simulate.batch import run_batch, timing_summary, write_results
+    from normpos_grasp.simulate.batch import (
+        BatchResult,
+        Interrupted,
+        RunFolder,
+        run_batch,
+        run_parameters,
+        timing_summary,
+        write_results,
+    )
     from normpos_grasp.simulate.episode import SimulationConfig
 
+    resolution = parse_resolution(args.resolution)
+    if not all(MIN_SIDE <= side <= MAX_SIDE for side in resolution):
+        raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
     parts = () if args.parts == "default" else tuple(p.strip() for p in args.parts.split(",") if p.strip())
     config = SimulationConfig(
         cell_path=str(args.cell),
@@ -85,26 +131,70 @@ def run(args: argparse.Namespace) -> int:
         segmenter=args.segmenter,
         renderer=args.renderer,
         gripper=args.gripper,
-        resolution=parse_resolution(args.resolution),
+        resolution=resolution,
         perception_retries=args.retries,
         reuse_fits=not args.no_reuse_fits,
         relaxed_plan=not args.no_relaxed_plan,
         pick_unmatched=not args.no_pick_unmatched,
     )
-    bar = tqdm(total=args.scenes, unit="scene", disable=args.no_progress)
+    cell = load_cell(args.cell)  # the input is read and checked before anything is written
+    if cell.bin is None or cell.world_from_camera is None:
+        raise InputError(
+            f"--cell {args.cell}: simulate needs a cell with a bin and a camera pose "
+            f"({'no bin' if cell.bin is None else 'no camera pose'})"
+        )
+    params = run_parameters(config, args.scenes)
+    out = Path(args.out)
+    folder = RunFolder(out)
+    done = {}
+    if args.resume and folder.started:
+        folder.check_resume(params)
+        if folder.complete:
+            print(f"the run in {out} is already complete (summary.json); nothing to resume")
+            return 0
+        done = folder.load_scenes(args.scenes)
+    else:
+        if args.resume and out.is_dir() and any(out.iterdir()):
+            raise InputError(f"--resume: {out} holds files but no simulate run (no manifest.json)")
+        check_out_dir(out, args.overwrite)
+        folder.clear()
+        folder.start(params)
+    bar = tqdm(total=args.scenes, initial=len(done), unit="scene", disable=args.no_progress)
 
-    def progress(done: int, total: int) -> None:
-        bar.n = done
+    def progress(finished: int, _total: int) -> None:
+        bar.n = finished
         bar.refresh()
 
     t0 = time.perf_counter()
     try:
-        result = run_batch(config, args.scenes, workers=args.workers, ray_address=args.ray, progress=progress)
+        run_batch(
+            config,
+            args.scenes,
+            workers=args.workers,
+            ray_address=args.ray,
+            progress=progress,
+            done=done,
+            on_scene=folder.write_scene,
+        )
+    except Interrupted as exc:
+        bar.close()
+        print(
+            f"normpos-grasp simulate: interrupted by {signal.Signals(exc.signum).name} with {exc.finished} of "
+            f"{exc.total} scenes finished (kept in {folder.scenes_dir}); run the same command with --resume "
+            "to continue",
+            file=sys.stderr,
+        )
+        return exc.exit_code
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    timing = timing_summary(result, wall)
-    summary = write_results(result, args.out, timing)
+    scenes = folder.load_scenes(args.scenes)  # the written files are the results: one path, resumed or not
+    if len(scenes) != args.scenes:
+        missing = sorted(set(range(args.scenes)) - set(scenes))[:5]
+        raise SimulationError(f"{folder.scenes_dir}: scenes {missing} missing after the run; run with --resume")
+    result = BatchResult(config, tuple(scenes[i] for i in range(args.scenes)))
+    timing = timing_summary(result, wall, resumed=tuple(done))
+    summary = write_results(result, out, timing)
     print(
         json.dumps(
             {k: summary[k] for k in ("picks_attempted", "picks_succeeded", "success_rate", "failures_by_cause")},
@@ -112,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
         )
     )
     print(
-        f"{timing['picks']} picks in {wall:.1f} s ({timing['picks_per_minute']:.1f} picks/min); results in {args.out}"
+        f"{timing['picks']} picks in {wall:.1f} s ({timing['picks_per_minute']:.1f} picks/min"
+        + (f"; {len(done)} scenes resumed" if done else "")
+        + f"); results in {out}"
     )
     return 0

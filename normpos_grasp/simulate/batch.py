@@ -1,32 +1,50 @@
-"""Batches of simulated scenes: local processes (default) or Ray tasks, the per-pick CSV and summary.json.
+"""Batches of simulated scenes: local processes (default) or Ray tasks, per-scene results, picks.csv and summary.json.
 
 Scenes are independent and seeded from (config.seed, scene index), so the results do not depend on the number
-of workers or on Ray: records are sorted by (scene, pick) before they are written, and the written files hold
-no wall-clock times (those go to timing.json), so two runs with the same seeds give byte-identical
-picks.csv and summary.json.
+of workers, on Ray, or on which scenes one process ran before: records are sorted by (scene, pick) before they
+are written, and the written files hold no wall-clock times (those go to timing.json), so two runs with the same
+seeds give byte-identical picks.csv, summary.json and plots.
+
+A run folder (`RunFolder`) makes a batch resumable: `manifest.json` (the parameters that change results) is
+written first, `scenes/scene_NNNNNN.json` atomically as each scene finishes, and `summary.json` last, which
+marks the run complete. `run_batch(..., done=..., on_scene=...)` skips finished scenes and reports new ones.
+SIGINT and SIGTERM during `run_batch` end the worker processes (pending scenes cancelled, running ones
+killed) and raise `Interrupted`; workers also die with the parent (Linux: PR_SET_PDEATHSIG).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import dataclasses
+import hashlib
+import io
 import json
 import logging
 import math
 import os
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+import shutil
+import signal
+import threading
+from collections.abc import Callable, Collection, Iterator, Mapping
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import numpy as np
 
+from normpos_grasp import __version__
 from normpos_grasp.errors import InputError, MissingDependency, SimulationError
+from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, run_scene
+from normpos_grasp.simulate.worker import init_worker
 
 logger = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int], None]
+SceneFn = Callable[[SceneResult], None]
 
 #: Environment of scene workers (local processes and Ray tasks): single-threaded numerical libraries, so that
 #: results do not depend on how many threads a worker could use.
@@ -62,6 +80,36 @@ CSV_COLUMNS = (
     "nudge_collisions",
 )
 
+MANIFEST_FORMAT = "normpos-grasp/simulate-run@1"
+SCENE_FORMAT = "normpos-grasp/simulate-scene@1"
+#: files of a finished run besides manifest.json and scenes/ (summary.json is written last)
+RESULT_FILES = (
+    "picks.csv",
+    "success_by_part.png",
+    "success_by_depth.png",
+    "success_by_occlusion.png",
+    "timing.json",
+    "summary.json",
+)
+#: seconds a worker gets to exit after SIGTERM before it is killed
+STOP_GRACE_S = 2.0
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived during `run_batch`; the workers are gone. signum: the signal; finished: scenes
+    finished (including those passed as `done`); total: scenes of the batch."""
+
+    def __init__(self, signum: int, finished: int = 0, total: int = 0) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+        self.finished = finished
+        self.total = total
+
+    @property
+    def exit_code(self) -> int:
+        """128 + signal number (130 for SIGINT, 143 for SIGTERM)."""
+        return 128 + self.signum
+
 
 @dataclass(frozen=True)
 class BatchResult:
@@ -80,49 +128,139 @@ def _scene_task(args: tuple[SimulationConfig, int]) -> SceneResult:
     return run_scene(config, index)
 
 
+@contextlib.contextmanager
+def _signals_raise() -> Iterator[None]:
+    """While the block runs (main thread only), SIGINT and SIGTERM raise `Interrupted`; previous handlers are
+    restored on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    fired: list[int] = []
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        if fired:  # a second signal must not cut the cleanup of the first one short
+            return
+        fired.append(signum)
+        raise Interrupted(signum)
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in saved:
+        signal.signal(s, handler)
+    try:
+        yield
+    finally:
+        for s, previous in saved.items():
+            signal.signal(s, previous)
+
+
+@contextlib.contextmanager
+def _signals_ignored(signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Ignore `signums` in the block (main thread only): cleanup that must not be cut short, or the spawning of
+    workers, which then ignore SIGINT (a terminal's Ctrl-C reaches them too) from their first instruction."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.signal(s, signal.SIG_IGN) for s in signums}
+    try:
+        yield
+    finally:
+        for s, previous in saved.items():
+            signal.signal(s, previous)
+
+
 def run_batch(
     config: SimulationConfig,
     n_scenes: int,
     workers: int = 1,
     ray_address: str | None = None,
     progress: ProgressFn | None = None,
+    done: Mapping[int, SceneResult] | None = None,
+    on_scene: SceneFn | None = None,
 ) -> BatchResult:
     """Simulate scenes 0 .. n_scenes-1 of `config`. workers: local worker processes (spawned, single-threaded).
     ray_address: run scenes as Ray tasks on this cluster ('auto', 'local' for a new local cluster, or an
-    address); needs the optional 'ray' package. progress(done, total) is called as scenes finish."""
+    address); needs the optional 'ray' package. progress(done, total) is called as scenes finish.
+    done: scenes already finished (index -> result, e.g. `RunFolder.load_scenes()`); they are not run again.
+    on_scene(result) is called in this process for every newly finished scene, in completion order.
+
+    SIGINT / SIGTERM (in the main thread) cancel pending scenes, end the workers and raise `Interrupted`
+    (what `on_scene` received is all that finished)."""
     if n_scenes < 1:
         raise InputError(f"n_scenes must be >= 1, got {n_scenes}")
     if workers < 1:
         raise InputError(f"workers must be >= 1, got {workers}")
-    tasks = [(config, i) for i in range(n_scenes)]
-    results: list[SceneResult] = []
-    if ray_address:
-        results = _run_ray(tasks, ray_address, progress)
-    else:
-        import multiprocessing
+    finished: dict[int, SceneResult] = {i: r for i, r in (done or {}).items() if 0 <= i < n_scenes}
+    tasks = [(config, i) for i in range(n_scenes) if i not in finished]
 
-        # Scenes always run in fresh spawned processes with single-threaded BLAS: multi-threaded reductions
-        # change the last bits of fits with the thread count, and no MuJoCo / EGL state is inherited.
-        ctx = multiprocessing.get_context("spawn")
-        saved = {k: os.environ.get(k) for k in THREAD_ENV}
-        os.environ.update(THREAD_ENV)
+    def finish(res: SceneResult) -> None:
+        finished[res.scene] = res
+        if on_scene is not None:
+            on_scene(res)
+        if progress is not None:
+            progress(len(finished), n_scenes)
+
+    if tasks:
         try:
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-                for k, res in enumerate(pool.map(_scene_task, tasks)):
-                    results.append(res)
-                    if progress is not None:
-                        progress(k + 1, n_scenes)
-        finally:
-            for key, value in saved.items():
-                if value is None:
-                    os.environ.pop(key, None)
+            with _signals_raise():
+                if ray_address:
+                    _run_ray(tasks, ray_address, finish)
                 else:
-                    os.environ[key] = value
-    results.sort(key=lambda r: r.scene)
+                    _run_local(tasks, workers, finish)
+        except Interrupted as exc:
+            raise Interrupted(exc.signum, len(finished), n_scenes) from None
+    results = sorted(finished.values(), key=lambda r: r.scene)
     return BatchResult(config, tuple(results))
 
 
-def _run_ray(tasks: list[tuple[SimulationConfig, int]], address: str, progress: ProgressFn | None) -> list[SceneResult]:
+def _run_local(tasks: list[tuple[SimulationConfig, int]], workers: int, finish: SceneFn) -> None:
+    import multiprocessing
+
+    # Scenes always run in fresh spawned processes with single-threaded BLAS: multi-threaded reductions
+    # change the last bits of fits with the thread count, and no MuJoCo / EGL state is inherited.
+    ctx = multiprocessing.get_context("spawn")
+    saved = {k: os.environ.get(k) for k in THREAD_ENV}
+    os.environ.update(THREAD_ENV)
+    pool = ProcessPoolExecutor(
+        max_workers=min(workers, len(tasks)), mp_context=ctx, initializer=init_worker, initargs=(os.getpid(),)
+    )
+    try:
+        with _signals_ignored((signal.SIGINT,)):  # the workers are spawned here (one per submit, up to max_workers)
+            pending: set[Future[SceneResult]] = {pool.submit(_scene_task, t) for t in tasks}
+        while pending:
+            ready, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in ready:
+                finish(fut.result())
+    except BaseException:
+        with _signals_ignored():
+            _stop_pool(pool)
+        raise
+    else:
+        pool.shutdown(wait=True)
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what has not started and end every worker now: SIGTERM, then SIGKILL after STOP_GRACE_S."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())  # no public API lists the workers
+    for p in procs:
+        with contextlib.suppress(OSError, ValueError):
+            p.terminate()
+    for p in procs:
+        with contextlib.suppress(OSError, ValueError, AssertionError):
+            p.join(STOP_GRACE_S)
+            if p.is_alive():
+                p.kill()
+                p.join(STOP_GRACE_S)
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _run_ray(tasks: list[tuple[SimulationConfig, int]], address: str, finish: SceneFn) -> None:
     try:
         import ray
     except ImportError as exc:
@@ -140,21 +278,162 @@ def _run_ray(tasks: list[tuple[SimulationConfig, int]], address: str, progress: 
                 "or use --ray local"
             ) from exc
         started = True
+    pending: dict[Any, int] = {}
     try:
         remote = ray.remote(_scene_task).options(runtime_env={"env_vars": dict(THREAD_ENV)})
         pending = {remote.remote(t): t[1] for t in tasks}
-        out: list[SceneResult] = []
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            for ref in done:
-                out.append(ray.get(ref))
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
                 pending.pop(ref)
-            if progress is not None:
-                progress(len(out), len(tasks))
-        return out
+                finish(ray.get(ref))
+    except BaseException:
+        with _signals_ignored():
+            for ref in pending:  # the tasks of an interrupted batch do not run on
+                with contextlib.suppress(Exception):
+                    ray.cancel(ref, force=True)
+        raise
     finally:
         if started:
-            ray.shutdown()
+            with _signals_ignored():
+                ray.shutdown()
+
+
+# -- run folders -------------------------------------------------------------------------------------------
+def run_parameters(config: SimulationConfig, n_scenes: int) -> dict[str, Any]:
+    """Everything that changes a batch's results, as JSON-ready data: the whole config (cell as a resolved path
+    and the SHA-256 of its file), the number of scenes and the package version. Worker counts and Ray are not
+    parameters (results do not depend on them)."""
+    params: dict[str, Any] = {"version": __version__, "scenes": int(n_scenes)}
+    params.update(dataclasses.asdict(config))
+    cell = Path(config.cell_path).resolve()
+    params["cell_path"] = str(cell)
+    params["cell_sha256"] = hashlib.sha256(cell.read_bytes()).hexdigest()
+    return json.loads(json.dumps(params))  # tuples as lists, as they read back
+
+
+def scene_to_json(result: SceneResult) -> dict[str, Any]:
+    """Lossless JSON mapping of a scene (floats round-trip exactly; NaN / inf as JSON's NaN / Infinity)."""
+    return {
+        "format": SCENE_FORMAT,
+        "scene": result.scene,
+        "n_parts": result.n_parts,
+        "cleared": result.cleared,
+        "parts_left": result.parts_left,
+        "picks": [dict(p.__dict__) for p in result.picks],
+    }
+
+
+def scene_from_json(data: Any, source: str = "scene") -> SceneResult:
+    """Inverse of `scene_to_json`; raises InputError naming `source` when the data is not such a scene."""
+    fields = [f.name for f in dataclasses.fields(PickRecord)]
+    try:
+        if data.get("format") != SCENE_FORMAT:
+            raise InputError(f"{source}: not a simulate scene file (format {data.get('format')!r})")
+        picks = tuple(PickRecord(**{k: p[k] for k in fields}) for p in data["picks"])
+        return SceneResult(
+            int(data["scene"]), int(data["n_parts"]), bool(data["cleared"]), picks, int(data["parts_left"])
+        )
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"{source}: malformed simulate scene file ({type(exc).__name__}: {exc})") from None
+
+
+class RunFolder:
+    """The output folder of one `simulate` run: manifest.json, scenes/, and the results written at the end."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.manifest_path = self.path / "manifest.json"
+        self.scenes_dir = self.path / "scenes"
+        self.summary_path = self.path / "summary.json"
+
+    @property
+    def started(self) -> bool:
+        """Whether a run was started here (its manifest exists)."""
+        return self.manifest_path.is_file()
+
+    @property
+    def complete(self) -> bool:
+        """Whether the run here finished (summary.json, written last, exists)."""
+        return self.summary_path.is_file()
+
+    def start(self, parameters: Mapping[str, Any]) -> None:
+        """Create the folder and write the manifest (before any scene runs)."""
+        self.scenes_dir.mkdir(parents=True, exist_ok=True)
+        manifest = {"format": MANIFEST_FORMAT, "parameters": dict(parameters)}
+        atomic_write_text(self.manifest_path, json.dumps(manifest, indent=1) + "\n")
+
+    def clear(self) -> None:
+        """Remove an earlier run's manifest, scene files and results (other files in the folder are kept)."""
+        for name in ("manifest.json", *RESULT_FILES):
+            with contextlib.suppress(FileNotFoundError):
+                (self.path / name).unlink()
+        if self.scenes_dir.is_dir():
+            shutil.rmtree(self.scenes_dir)
+
+    def parameters(self) -> dict[str, Any]:
+        """The manifest's parameters; InputError when it is not a simulate manifest."""
+        try:
+            data = json.loads(self.manifest_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{self.manifest_path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+        if (
+            not isinstance(data, dict)
+            or data.get("format") != MANIFEST_FORMAT
+            or not isinstance(data.get("parameters"), dict)
+        ):
+            raise InputError(f"{self.manifest_path}: not a simulate run manifest ({MANIFEST_FORMAT})")
+        return dict(data["parameters"])
+
+    def check_resume(self, parameters: Mapping[str, Any]) -> None:
+        """InputError naming the differing parameters when the manifest's differ from `parameters`."""
+        old = self.parameters()
+        keys = sorted(set(old) | set(parameters))
+        diff = [k for k in keys if old.get(k) != parameters.get(k)]
+        if diff:
+            shown = ", ".join(f"{k} {_short(old.get(k))} -> {_short(parameters.get(k))}" for k in diff[:4])
+            more = f" and {len(diff) - 4} more" if len(diff) > 4 else ""
+            raise InputError(
+                f"--resume: the run in {self.path} was started with other parameters ({shown}{more}); "
+                "repeat its options or choose another --out"
+            )
+
+    def scene_path(self, index: int) -> Path:
+        return self.scenes_dir / f"scene_{index:06d}.json"
+
+    def write_scene(self, result: SceneResult) -> None:
+        """Write one finished scene atomically (a reader sees the whole file or none)."""
+        text = json.dumps(scene_to_json(result), indent=None, separators=(",", ":")) + "\n"
+        atomic_write_text(self.scene_path(result.scene), text)
+
+    def load_scenes(self, n_scenes: int) -> dict[int, SceneResult]:
+        """Finished scenes 0 .. n_scenes-1 (index -> result); leftovers of interrupted writes are removed."""
+        out: dict[int, SceneResult] = {}
+        if not self.scenes_dir.is_dir():
+            return out
+        for partial in self.scenes_dir.glob(".*.partial"):
+            with contextlib.suppress(FileNotFoundError):
+                partial.unlink()
+        for index in range(n_scenes):
+            path = self.scene_path(index)
+            if not path.is_file():
+                continue
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except json.JSONDecodeError as exc:
+                raise InputError(f"{path}: not valid JSON ({exc.msg}); remove it to run the scene again") from None
+            result = scene_from_json(data, str(path))
+            if result.scene != index:
+                raise InputError(f"{path}: holds scene {result.scene}, not {index}")
+            out[index] = result
+        return out
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def summarise(result: BatchResult) -> dict[str, Any]:
@@ -205,32 +484,40 @@ def _csv_value(value: Any) -> str:
 
 
 def write_results(result: BatchResult, out_dir: str | Path, timing: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Write picks.csv, summary.json, timing.json (when given) and the plots to `out_dir`; returns the summary."""
+    """Write picks.csv, the plots, timing.json (when given) and, last, summary.json to `out_dir` (each file
+    atomically); returns the summary."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    with (out / "picks.csv").open("w", newline="", encoding="utf-8") as fh:
-        writer = csv.writer(fh, lineterminator="\n")
-        writer.writerow(CSV_COLUMNS)
-        for p in result.picks:
-            row = p.row()
-            writer.writerow([_csv_value(row[c]) for c in CSV_COLUMNS])
-    summary = summarise(result)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, sort_keys=False) + "\n", encoding="utf-8")
-    if timing is not None:
-        (out / "timing.json").write_text(json.dumps(timing, indent=1) + "\n", encoding="utf-8")
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for p in result.picks:
+        row = p.row()
+        writer.writerow([_csv_value(row[c]) for c in CSV_COLUMNS])
+    atomic_write_text(out / "picks.csv", buf.getvalue())
     from normpos_grasp.simulate.plots import write_plots
 
     write_plots(result.picks, out)
+    if timing is not None:
+        atomic_write_text(out / "timing.json", json.dumps(timing, indent=1) + "\n")
+    summary = summarise(result)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, sort_keys=False) + "\n")
     return summary
 
 
-def timing_summary(result: BatchResult, wall_s: float) -> dict[str, Any]:
-    """Wall-clock figures of a run (not deterministic, kept apart from summary.json)."""
-    picks = result.picks
+def timing_summary(result: BatchResult, wall_s: float, resumed: Collection[int] = ()) -> dict[str, Any]:
+    """Wall-clock figures of a run (not deterministic, kept apart from summary.json). resumed: indices of the
+    scenes taken from an earlier, interrupted run; the figures count only the scenes this run simulated."""
+    scenes = result.scenes
+    skip = set(resumed)
+    ran = [s for s in scenes if s.scene not in skip]
+    picks = [p for s in ran for p in s.picks]
     physics_ms = [p.physics_ms for p in picks if p.physics]
     pipeline_ms = [p.pipeline_ms for p in picks]
     return {
         "wall_s": round(wall_s, 3),
+        "scenes_run": len(ran),
+        "scenes_resumed": len(scenes) - len(ran),
         "picks": len(picks),
         "picks_per_minute": round(60.0 * len(picks) / wall_s, 3) if wall_s > 0 else 0.0,
         "physics_validations": len(physics_ms),
