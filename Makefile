@@ -15,7 +15,7 @@ $(BIN)/.installed: pyproject.toml requirements.lock
 	$(BIN)/python -m pip install --quiet --require-hashes --no-deps -r requirements.lock
 	$(BIN)/python -m pip install --quiet --no-deps --no-build-isolation -e .
 	$(BIN)/python -m pip check
-	$(BIN)/python -m normpos_grasp.templates.warmup  # compile the fit kernels once (numba cache)
+	$(BIN)/python -m normpos_grasp.warmup  # compile the fit kernels and the IK once, store template preparations
 	touch $@
 
 install: $(BIN)/.installed

@@ -55,6 +55,7 @@ LAYERS: tuple[str, ...] = (
     "loop",
     "training",
     "demo",
+    "warmup",  # install-time compilation of every stage's kernels
     "cli",
     # the package's own __init__ (version only)
     PACKAGE,

@@ -1,0 +1,45 @@
+"""Compile and store everything a fresh install would otherwise pay for in its first pick (`make install` runs it).
+
+- the fit kernels (numba, cached on disk) and the stored preparations of the built-in and example templates
+  (`templates.warmup`);
+- the compiled one-pose inverse kinematics (`kinematics.analytic_ik`, numba, cached on disk), which the planner and
+  the loopback controller call.
+
+    python -m normpos_grasp.warmup
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from normpos_grasp.kinematics.robot import Robot
+from normpos_grasp.kinematics.ur_params import ur_params
+from normpos_grasp.templates.warmup import prepare_builtin, warm_up
+
+logger = logging.getLogger(__name__)
+
+
+def warm_up_kinematics() -> float:
+    """Solve one pose per UR model so the compiled IK is built and cached; returns the seconds it took."""
+    t0 = time.perf_counter()
+    for name in ("ur3e", "ur5e", "ur10e", "ur16e", "ur20", "ur30"):
+        robot = Robot(ur_params(name))
+        q = np.array([0.3, -1.2, 1.4, -1.7, -1.5, 0.2])
+        solutions = robot.ik(robot.fk(q), q)
+        if len(solutions) == 0:
+            raise RuntimeError(f"IK warm-up found no solution for {name} at a regular pose")
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    warm_up()  # logs its own time
+    prepare_builtin()
+    logger.info("inverse kinematics ready in %.1f s", warm_up_kinematics())
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    main()
