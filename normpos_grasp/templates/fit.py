@@ -6,8 +6,10 @@ Pipeline per (norm-position, template):
    template's control points matched to points detected on the measurement (OBB corners, extremal points);
 3. coarse batched ICP of every hypothesis on a distance grid, keep the best distinct few;
 4. exact trimmed point-to-plane ICP (camera-visible model points only) with an optional size factor;
-5. scoring (inliers, RMSE, visible coverage, free-space violation) and acceptance with a reason; a second,
-   clearly different pose that explains the data about as well makes the fit ambiguous: rejected.
+5. scoring (inliers, RMSE, visible coverage, free-space violation, and over the pose's whole visible surface the
+   share explained by depth and the share lying right behind measured points it does not explain) and acceptance
+   with a reason; a second, clearly different pose that explains the data about as well makes the fit ambiguous:
+   rejected. One pose per physical object across a frame's fits: `templates.select.one_pose_per_object`.
 """
 
 from __future__ import annotations
