@@ -32,7 +32,9 @@ SLACK_S = 0.25  # s: the issue asks 0.1 s; the bound here leaves room for a load
 
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Campaign]:
-    with Campaign(HOST, tmp_path_factory.mktemp("faults")) as c:
+    # SCHED_FIFO for the emulator's 500 Hz loop where allowed (else it runs normally and says so in its log): a
+    # starved loop makes the emulated servo catch up in jumps on a loaded machine
+    with Campaign(HOST, tmp_path_factory.mktemp("faults"), rt_priority=10) as c:
         yield c
 
 
