@@ -278,3 +278,48 @@ def test_finished_scenes_are_not_run_again() -> None:
     seen: list[int] = []
     result = run_batch(config, 2, done=done, on_scene=lambda r: seen.append(r.scene))
     assert [s.scene for s in result.scenes] == [0, 1] and seen == []
+
+
+# -- synth ---------------------------------------------------------------------------------------------------
+SYNTH = ("--scenes", "3", "--count", "2", "--resolution", "160x120", "--no-progress")
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_synth_sigterm_then_resume_gives_the_uninterrupted_dataset(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """SIGTERM once scene 0 is staged: exit 143, one line, no dataset at --out, scene 0 kept; --resume with another
+    seed is refused; --resume writes the remaining scenes and the dataset equals an uninterrupted one file by file."""
+    from normpos_grasp.cli.main import main
+
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    staging = tmp_path / ".out.partial"
+    args = [sys.executable, "-m", "normpos_grasp.cli.main", "synth", "--out", str(out), *SYNTH]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for((staging / "train" / "000000").is_dir, proc, "the first staged scene")
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 143, err
+    line = _one_line(err)
+    assert "interrupted by SIGTERM" in line and "of 3 scenes finished" in line and "--resume" in line
+    assert not out.exists() and (staging / "train" / "000000" / "scene_static.json").is_file()
+    kept = _tree(staging / "train" / "000000")
+    assert main(["synth", "--out", str(ref), *SYNTH]) == 0
+    capsys.readouterr()
+    assert main(["synth", "--out", str(out), *SYNTH, "--resume", "--seed", "9"]) == 2
+    refused = _one_line(capsys.readouterr().err)
+    assert "--resume" in refused and "seed 0 -> 9" in refused
+    assert _tree(staging / "train" / "000000") == kept and not out.exists()
+    assert main(["synth", "--out", str(out), *SYNTH, "--resume"]) == 0
+    assert not staging.exists()
+    assert _tree(out) == _tree(ref)
+    assert main(["synth", "--out", str(out), *SYNTH, "--resume"]) == 0  # complete: nothing to do
+    assert "already complete" in capsys.readouterr().out

@@ -43,13 +43,13 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--sensor", default="d435", choices=sorted(SENSOR_PRESETS), help="sensor model preset")
     parser.add_argument("--seed", type=int_in(0, 2**32 - 1), default=0, help="batch seed (scenes are seeded from it)")
     parser.add_argument("--out", required=True, help="output folder (must be empty or absent, see --overwrite)")
-    mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-    mode.add_argument(
+    parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    parser.add_argument(
         "--resume",
         action="store_true",
         help="continue the interrupted run in --out: its finished scenes are kept, the others run (the other "
-        "options must be those of the first command; --workers / --ray may differ)",
+        "options must be those of the first command; --workers / --ray may differ; with --overwrite too, a "
+        "folder without a run is replaced)",
     )
     parser.add_argument("--parts", default="default", help="'default' or comma-separated part names")
     parser.add_argument("--count", type=int_in(1, MAX_COUNT), default=8, help=f"parts per scene, 1..{MAX_COUNT}")
@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
             return 0
         done = folder.load_scenes(args.scenes)
     else:
-        if args.resume and out.is_dir() and any(out.iterdir()):
+        if args.resume and not args.overwrite and out.is_dir() and any(out.iterdir()):
             raise InputError(f"--resume: {out} holds files but no simulate run (no manifest.json)")
         check_out_dir(out, args.overwrite)
         folder.clear()

@@ -1,26 +1,33 @@
 """`normpos-grasp synth`: write a synthetic BOP dataset (parts dropped into a bin, rendered with a sensor model).
 
 The dataset is written into a staging folder `.<OUT name>.partial` next to OUT and moved to OUT only when every
-scene is complete, so an interrupted or failed run leaves no dataset that readers could take as complete. An OUT
-that already holds files is refused; with --overwrite an earlier synthetic dataset there is replaced (a folder
-that does not look like one is still refused).
+scene is complete, so an interrupted or failed run leaves no dataset that readers could take as complete. Each
+scene appears in the staging folder at once when finished; SIGINT / SIGTERM keep the finished scenes (exit 130 /
+143, one line) and `--resume` continues from them with the same seeds (refused when the options differ), giving
+the files of an uninterrupted run. An OUT that already holds files is refused; with --overwrite an earlier
+synthetic dataset there is replaced (a folder that does not look like one is still refused).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import shutil
+import signal
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from normpos_grasp.cli.args import OVERWRITE_HELP, float_in, int_in
 from normpos_grasp.errors import InputError
+from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.sim.cameras import parse_resolution
 from normpos_grasp.sim.scene import CONTAINERS, SceneOptions
 from normpos_grasp.sim.sensor import SENSOR_PRESETS
+from normpos_grasp.simulate.signals import Interrupted, signals_ignored, signals_raise
 
 #: bounds of the numeric options (a larger value is refused with this range)
 MAX_SCENES = 10_000
@@ -28,6 +35,8 @@ MAX_FRAMES = 1_000
 MAX_COUNT = 100
 MAX_LAYERS = 10
 MIN_SIDE, MAX_SIDE = 16, 4096
+#: the options of a run, in its staging folder until the dataset is complete (what --resume checks)
+RESUME_FILE = "synth-run.json"
 
 
 def register(subparsers: Any) -> None:
@@ -39,6 +48,12 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--out", required=True, help="output dataset folder (must be empty or absent)")
     parser.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP + " (an earlier synth dataset only)")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run into the same --out: its finished scenes are kept (the other options "
+        "must be those of the first command)",
+    )
     parser.add_argument("--scenes", type=int_in(1, MAX_SCENES), default=1,
                         help=f"number of scenes (physics drops), 1..{MAX_SCENES}")  # fmt: skip
     parser.add_argument("--frames", type=int_in(1, MAX_FRAMES), default=1,
@@ -71,10 +86,29 @@ def run(args: argparse.Namespace) -> int:
     parts = None if args.parts in ("", "default") else [p.strip() for p in args.parts.split(",") if p.strip()]
     scene = SceneOptions(count=args.count, container=args.container, clutter=args.clutter, stack_layers=args.layers)
     out = Path(args.out)
-    replace_old = _check_out(out, args.overwrite)
     staging = out.parent / f".{out.name}.partial"
-    if staging.exists():  # left by an interrupted run: never complete, never read
-        shutil.rmtree(staging)
+    params = {
+        "scenes": args.scenes,
+        "frames": args.frames,
+        "sensor": args.sensor,
+        "resolution": list(resolution),
+        "parts": parts,
+        "scene": {"count": args.count, "container": args.container, "clutter": args.clutter, "layers": args.layers},
+        "renderer": args.renderer,
+        "seed": args.seed,
+    }
+    resume = args.resume and (staging / RESUME_FILE).is_file()
+    if args.resume and not resume and (out / "parts.json").is_file() and not staging.exists():
+        print(f"the dataset in {out} is already complete (parts.json); nothing to resume")
+        return 0
+    replace_old = _check_out(out, args.overwrite)
+    if resume:
+        _check_resume(staging, params)
+    else:
+        if staging.exists():  # left by an interrupted run: never complete, never read
+            shutil.rmtree(staging)
+        staging.mkdir(parents=True)
+        atomic_write_text(staging / RESUME_FILE, json.dumps(params, indent=1) + "\n")
     total = args.scenes * args.frames
     bars: list[Any] = []  # the bar appears with the first finished frame: input errors print only their line
     state = {"done": 0}
@@ -87,19 +121,33 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     try:
-        split = write_bop_dataset(
-            staging,
-            args.scenes,
-            args.frames,
-            sensor=args.sensor,
-            resolution=resolution,
-            parts=parts,
-            seed=args.seed,
-            progress=progress,
-            scene_options=scene,
-            backend=args.renderer,
+        with signals_raise():
+            split = write_bop_dataset(
+                staging,
+                args.scenes,
+                args.frames,
+                sensor=args.sensor,
+                resolution=resolution,
+                parts=parts,
+                seed=args.seed,
+                progress=progress,
+                scene_options=scene,
+                backend=args.renderer,
+                resume=resume,
+            )
+            with signals_ignored():  # the finished dataset is moved whole
+                (staging / RESUME_FILE).unlink()
+                _move_into_place(staging, out, replace_old)
+    except Interrupted as exc:
+        for bar in bars:
+            bar.close()
+        finished = sum(1 for p in (staging / "train").glob("[0-9]*") if p.is_dir()) if staging.is_dir() else 0
+        print(
+            f"normpos-grasp synth: interrupted by {signal.Signals(exc.signum).name} with {finished} of "
+            f"{args.scenes} scenes finished (kept in {staging}); run the same command with --resume to continue",
+            file=sys.stderr,
         )
-        _move_into_place(staging, out, replace_old)
+        return exc.exit_code
     except BaseException:
         with contextlib.suppress(OSError):
             shutil.rmtree(staging)
@@ -110,6 +158,23 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - start
     print(f"wrote {total} frames ({args.scenes} scenes) to {out / split.name} in {elapsed:.1f} s")
     return 0
+
+
+def _check_resume(staging: Path, params: dict[str, Any]) -> None:
+    """InputError naming the options that differ from those of the interrupted run staged in `staging`."""
+    try:
+        old = json.loads((staging / RESUME_FILE).read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        old = None
+    if not isinstance(old, dict):
+        raise InputError(f"--resume: {staging / RESUME_FILE} is not a synth run record; run without --resume")
+    diff = [k for k in sorted(set(old) | set(params)) if old.get(k) != params.get(k)]
+    if diff:
+        shown = ", ".join(f"{k} {json.dumps(old.get(k))} -> {json.dumps(params.get(k))}" for k in diff)
+        raise InputError(
+            f"--resume: the interrupted run in {staging} was started with other options ({shown}); repeat its "
+            "options or run without --resume to start again"
+        )
 
 
 def _check_out(out: Path, overwrite: bool) -> bool:

@@ -18,6 +18,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError
+from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.cameras import CameraOptions, sample_camera
@@ -139,6 +140,7 @@ def write_bop_dataset(
     camera_options: CameraOptions | None = None,
     split: str = "train",
     backend: str = "auto",
+    resume: bool = False,
 ) -> Path:
     """Write `n_scenes` scenes of `n_frames` views each as a BOP dataset under `out_dir`; returns the split folder.
 
@@ -147,8 +149,16 @@ def write_bop_dataset(
     scene_static.json with the static boxes in mm), camera.json and parts.json (obj_id -> part name).
     parts: part names from the default library, Templates, or None for the whole default library; obj_id is
     the 1-based position in that list. progress(frames_done, frames_total) is called after every frame.
+
+    Each scene is written into `{split}/.{scene:06d}.partial` and renamed to its folder when complete, and
+    parts.json (which readers require) is written last. resume: keep the scene folders an earlier, interrupted
+    call with the same arguments finished and write only the others (scenes and frames are seeded
+    independently, so the files equal those of one uninterrupted call).
     """
+    import shutil
+
     from normpos_grasp.io.bop import BopGT, BopSceneWriter, write_models
+    from normpos_grasp.sim.cameras import camera_intrinsics
 
     if n_scenes < 1 or n_frames < 1:
         raise InputError(f"need at least one scene and one frame, got {n_scenes} scenes x {n_frames} frames")
@@ -172,15 +182,22 @@ def write_bop_dataset(
     depth_scale_mm = 0.1 if sensor_model.max_range_m <= 6.5 else 1.0
     total = n_scenes * n_frames
     done = 0
-    first_camera: Camera | None = None
     for s in range(n_scenes):
+        scene_dir = split_dir / f"{s:06d}"
+        if resume and scene_dir.is_dir():
+            done += n_frames
+            if progress is not None:
+                progress(done, total)
+            continue
+        staging = split_dir / f".{s:06d}.partial"
+        if staging.exists():  # left by an interrupted call
+            shutil.rmtree(staging)
         layout = compose_scene(replace(base_scene, seed=_scene_seed(seed, s)), library)
         if not layout.settled:
             logger.info("scene %d: parts had not fully come to rest after %.1f s", s, layout.settle_time_s)
-        scene_dir = split_dir / f"{s:06d}"
         renderer = make_renderer(layout, resolution[0], resolution[1], backend)
         try:
-            with BopSceneWriter(scene_dir, depth_scale_mm=depth_scale_mm) as writer:
+            with BopSceneWriter(staging, depth_scale_mm=depth_scale_mm) as writer:
                 for f in range(n_frames):
                     rng = np.random.default_rng([int(seed), s, f, 0xF4A])
                     camera = sample_camera(cam_opts, layout.container_centre(), rng)
@@ -192,7 +209,6 @@ def write_bop_dataset(
                         depth_scale_mm / 1000.0,
                         camera.world_from_camera,
                     )
-                    first_camera = first_camera or camera
                     sf = render_frame(layout, renderer, camera, sensor_model, rng, scene_id=s, im_id=f)
                     cfw = camera.camera_from_world
                     gts = [
@@ -213,19 +229,22 @@ def write_bop_dataset(
                         progress(done, total)
         finally:
             renderer.close()
-        (scene_dir / "scene_static.json").write_text(_dump(_static_json(layout)))
-    if first_camera is not None:
-        k = first_camera.K
-        cam_json = {
-            "cx": float(k[0, 2]),
-            "cy": float(k[1, 2]),
-            "fx": float(k[0, 0]),
-            "fy": float(k[1, 1]),
-            "width": first_camera.width,
-            "height": first_camera.height,
-            "depth_scale": depth_scale_mm,
-        }
-        (root / "camera.json").write_text(_dump(cam_json))
+        (staging / "scene_static.json").write_text(_dump(_static_json(layout)))
+        if scene_dir.exists():  # an earlier scene folder when not resuming
+            shutil.rmtree(scene_dir)
+        staging.replace(scene_dir)  # the finished scene appears at once
+    intrinsics = camera_intrinsics(cam_opts.sensor, cam_opts.resolution)  # every frame's (poses vary)
+    k = intrinsics.K
+    cam_json = {
+        "cx": float(k[0, 2]),
+        "cy": float(k[1, 2]),
+        "fx": float(k[0, 0]),
+        "fy": float(k[1, 1]),
+        "width": intrinsics.width,
+        "height": intrinsics.height,
+        "depth_scale": depth_scale_mm,
+    }
+    atomic_write_text(root / "camera.json", _dump(cam_json))
     info = {
         "generator": "normpos_grasp.sim",
         "sensor": sensor_model.name,
@@ -236,7 +255,7 @@ def write_bop_dataset(
         "container": base_scene.container,
         "parts": {str(obj_ids[t.name]): {"name": t.name, "label": t.label, "shape": t.shape} for t in library},
     }
-    (root / "parts.json").write_text(_dump(info))
+    atomic_write_text(root / "parts.json", _dump(info))  # last: the dataset is complete
     return split_dir
 
 

@@ -24,13 +24,10 @@ import logging
 import math
 import os
 import shutil
-import signal
-import threading
-from collections.abc import Callable, Collection, Iterator, Mapping
+from collections.abc import Callable, Collection, Mapping
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -39,7 +36,7 @@ from normpos_grasp import __version__
 from normpos_grasp.errors import InputError, MissingDependency, SimulationError
 from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, run_scene
-from normpos_grasp.simulate.worker import init_worker
+from normpos_grasp.simulate.signals import Interrupted, init_worker, signals_deferred, signals_ignored, signals_raise
 
 logger = logging.getLogger(__name__)
 
@@ -95,22 +92,6 @@ RESULT_FILES = (
 STOP_GRACE_S = 2.0
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived during `run_batch`; the workers are gone. signum: the signal; finished: scenes
-    finished (including those passed as `done`); total: scenes of the batch."""
-
-    def __init__(self, signum: int, finished: int = 0, total: int = 0) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = int(signum)
-        self.finished = finished
-        self.total = total
-
-    @property
-    def exit_code(self) -> int:
-        """128 + signal number (130 for SIGINT, 143 for SIGTERM)."""
-        return 128 + self.signum
-
-
 @dataclass(frozen=True)
 class BatchResult:
     """Scenes of a batch in scene order."""
@@ -126,47 +107,6 @@ class BatchResult:
 def _scene_task(args: tuple[SimulationConfig, int]) -> SceneResult:
     config, index = args
     return run_scene(config, index)
-
-
-@contextlib.contextmanager
-def _signals_raise() -> Iterator[None]:
-    """While the block runs (main thread only), SIGINT and SIGTERM raise `Interrupted`; previous handlers are
-    restored on exit."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    fired: list[int] = []
-
-    def handler(signum: int, _frame: FrameType | None) -> None:
-        if fired:  # a second signal must not cut the cleanup of the first one short
-            return
-        fired.append(signum)
-        raise Interrupted(signum)
-
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    for s in saved:
-        signal.signal(s, handler)
-    try:
-        yield
-    finally:
-        for s, previous in saved.items():
-            signal.signal(s, previous)
-
-
-@contextlib.contextmanager
-def _signals_ignored(signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """Ignore `signums` in the block (main thread only): cleanup that must not be cut short, or the spawning of
-    workers, which then ignore SIGINT (a terminal's Ctrl-C reaches them too) from their first instruction."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    saved = {s: signal.signal(s, signal.SIG_IGN) for s in signums}
-    try:
-        yield
-    finally:
-        for s, previous in saved.items():
-            signal.signal(s, previous)
 
 
 def run_batch(
@@ -202,7 +142,7 @@ def run_batch(
 
     if tasks:
         try:
-            with _signals_raise():
+            with signals_raise():
                 if ray_address:
                     _run_ray(tasks, ray_address, finish)
                 else:
@@ -225,14 +165,14 @@ def _run_local(tasks: list[tuple[SimulationConfig, int]], workers: int, finish: 
         max_workers=min(workers, len(tasks)), mp_context=ctx, initializer=init_worker, initargs=(os.getpid(),)
     )
     try:
-        with _signals_ignored((signal.SIGINT,)):  # the workers are spawned here (one per submit, up to max_workers)
+        with signals_deferred():  # the workers are spawned here (one per submit, up to max_workers)
             pending: set[Future[SceneResult]] = {pool.submit(_scene_task, t) for t in tasks}
         while pending:
             ready, pending = wait(pending, return_when=FIRST_COMPLETED)
             for fut in ready:
                 finish(fut.result())
     except BaseException:
-        with _signals_ignored():
+        with signals_ignored():
             _stop_pool(pool)
         raise
     else:
@@ -288,14 +228,16 @@ def _run_ray(tasks: list[tuple[SimulationConfig, int]], address: str, finish: Sc
                 pending.pop(ref)
                 finish(ray.get(ref))
     except BaseException:
-        with _signals_ignored():
+        with signals_ignored():
             for ref in pending:  # the tasks of an interrupted batch do not run on
-                with contextlib.suppress(Exception):
+                try:
                     ray.cancel(ref, force=True)
+                except Exception as exc:  # best effort: a task that finished or a cluster that is gone
+                    logger.warning("could not cancel Ray task of scene %d: %s", pending[ref], exc)
         raise
     finally:
         if started:
-            with _signals_ignored():
+            with signals_ignored():
                 ray.shutdown()
 
 
@@ -360,10 +302,12 @@ class RunFolder:
         return self.summary_path.is_file()
 
     def start(self, parameters: Mapping[str, Any]) -> None:
-        """Create the folder and write the manifest (before any scene runs)."""
-        self.scenes_dir.mkdir(parents=True, exist_ok=True)
+        """Create the folder and write the manifest (before any scene runs; a folder holding anything else but
+        the manifest has one)."""
+        self.path.mkdir(parents=True, exist_ok=True)
         manifest = {"format": MANIFEST_FORMAT, "parameters": dict(parameters)}
         atomic_write_text(self.manifest_path, json.dumps(manifest, indent=1) + "\n")
+        self.scenes_dir.mkdir(exist_ok=True)
 
     def clear(self) -> None:
         """Remove an earlier run's manifest, scene files and results (other files in the folder are kept)."""
