@@ -102,6 +102,22 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from normpos_grasp.simulate.signals import Interrupted, signals_raise
+
+    try:
+        with signals_raise():  # from here on SIGTERM, like Ctrl-C, ends the run with one line
+            return _run(args)
+    except Interrupted as exc:
+        done = f" with {exc.finished} of {exc.total} scenes finished (kept in {Path(args.out) / 'scenes'})"
+        print(
+            f"normpos-grasp simulate: interrupted by {signal.Signals(exc.signum).name}{done if exc.total else ''}; "
+            "run the same command with --resume to continue",
+            file=sys.stderr,
+        )
+        return exc.exit_code
+
+
+def _run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from normpos_grasp.cell.config import load_cell
@@ -109,7 +125,6 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.sim.cameras import parse_resolution
     from normpos_grasp.simulate.batch import (
         BatchResult,
-        Interrupted,
         RunFolder,
         run_batch,
         run_parameters,
@@ -176,15 +191,6 @@ def run(args: argparse.Namespace) -> int:
             done=done,
             on_scene=folder.write_scene,
         )
-    except Interrupted as exc:
-        bar.close()
-        print(
-            f"normpos-grasp simulate: interrupted by {signal.Signals(exc.signum).name} with {exc.finished} of "
-            f"{exc.total} scenes finished (kept in {folder.scenes_dir}); run the same command with --resume "
-            "to continue",
-            file=sys.stderr,
-        )
-        return exc.exit_code
     finally:
         bar.close()
     wall = time.perf_counter() - t0
