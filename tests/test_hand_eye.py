@@ -325,3 +325,18 @@ def test_distorted_camera_recovers_the_truth() -> None:
     # the same corners read by a camera without distortion: the camera lands over 1 mm off
     plain = calibrate_hand_eye_from_corners(CAM, corners, _vectors(scene.base_from_flange), EYE_TO_HAND)
     assert _pose_error(scene.camera_pose, plain.camera_pose)[0] > 1.0
+
+
+def test_cli_is_registered_under_calibrate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from normpos_grasp.cli.main import main
+
+    names, scene = _write_set(tmp_path, EYE_IN_HAND, n=8, seed=13)
+    argv = ["calibrate", "hand-eye", "--mode", EYE_IN_HAND, "--images", *names, "--poses", str(tmp_path / "POSES.csv")]
+    argv += ["--camera", str(tmp_path / "camera.json"), "--out", str(tmp_path / "wrist.json")]
+    assert main(argv) == 0
+    mm, deg = _pose_error(scene.camera_pose, read_flange_from_camera(tmp_path / "wrist.json"))
+    assert mm < 1.0 and deg < 0.1
+    capsys.readouterr()
+    assert main([*argv[:4], "--images", *names[:7], *argv[5 + len(names) :]]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "holds 8 poses but 7 images" in err

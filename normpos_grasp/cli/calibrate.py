@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.cli.calibrate_hand_eye import add_hand_eye_parser
 from normpos_grasp.errors import InputError
 
 
@@ -97,6 +98,8 @@ def register(subparsers: Any) -> None:
         help="tolerated camera rotation, degrees (default 0.1)",
     )
     pc.set_defaults(handler=run)
+
+    add_hand_eye_parser(sub)  # calibrate hand-eye: normpos_grasp/cli/calibrate_hand_eye.py
 
 
 def run(args: argparse.Namespace) -> int:
