@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.demo import resolve_cell
+from normpos_grasp.cell import resolve_cell
 from normpos_grasp.loop import SyntheticBinSource
 from normpos_grasp.measure.measure import measure_instances
 from normpos_grasp.pipeline import PipelineOptions, make_segmenter, process_frame

@@ -275,7 +275,7 @@ def main() -> int:
     ap.add_argument("--json", default="", help="also write the figures to this JSON file")
     args = ap.parse_args()
 
-    from normpos_grasp.demo import resolve_cell
+    from normpos_grasp.cell import resolve_cell
     from normpos_grasp.pipeline import make_segmenter, perceive
     from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene
     from normpos_grasp.sim.dataset import render_frame

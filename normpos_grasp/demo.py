@@ -14,13 +14,12 @@ import logging
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from normpos_grasp.cell.config import CellConfig, load_cell
+from normpos_grasp.cell.config import CellConfig, resolve_cell
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.loop import PickRecord, SyntheticBinSource, run_cell_loop
@@ -32,7 +31,6 @@ from normpos_grasp.report.overlay import encode_png
 
 log = logging.getLogger(__name__)
 
-BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction")
 
 
 @dataclass(frozen=True)
@@ -65,18 +63,6 @@ class DemoResult:
     segmenter: str
     files: dict[str, Path]
     summary: dict[str, Any]
-
-
-def resolve_cell(name_or_path: str) -> CellConfig:
-    """A packaged example cell by name (see BUILTIN_CELLS) or a cell YAML path."""
-    path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") or path.exists():
-        return load_cell(path)
-    packaged = resources.files("normpos_grasp.examples").joinpath("cells", f"{name_or_path}.yaml")
-    if not packaged.is_file():
-        raise InputError(f"unknown cell {name_or_path!r}: give a YAML path or one of {', '.join(BUILTIN_CELLS)}")
-    with resources.as_file(packaged) as file:
-        return load_cell(file)
 
 
 def demo_segmenter(kind: str, source: SyntheticBinSource | None = None) -> tuple[Segmenter, str]:

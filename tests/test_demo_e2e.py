@@ -163,8 +163,8 @@ def test_view_command_serves_the_demo_twin_live(demo: dict[str, Any], tmp_path: 
 
 
 def test_live_view_follows_the_driver_state() -> None:
+    from normpos_grasp.cell import resolve_cell
     from normpos_grasp.cli.run import arm_state_dict
-    from normpos_grasp.demo import resolve_cell
     from normpos_grasp.execution import SafetyLimits, SimDriver
     from normpos_grasp.report.live import LiveView
 

@@ -9,7 +9,7 @@ import trimesh  # noqa: F401  (a hard dependency: imported, never skipped)
 from scipy.spatial import cKDTree
 
 from normpos_grasp.camera.model import RGBDFrame
-from normpos_grasp.demo import resolve_cell
+from normpos_grasp.cell import resolve_cell
 from normpos_grasp.pipeline import perceive
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.template import Template

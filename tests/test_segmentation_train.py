@@ -42,7 +42,7 @@ def test_pack_sample_boxes_and_masks_agree() -> None:
 
 @pytest.mark.slow
 def test_cell_and_frame_shards(tmp_path: Path) -> None:
-    from normpos_grasp.demo import resolve_cell
+    from normpos_grasp.cell import resolve_cell
 
     cell = resolve_cell("ur5e_bin_parallel")
     samples = cell_samples(cell, 5)

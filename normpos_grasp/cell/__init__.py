@@ -1,6 +1,7 @@
 """Cell descriptions: the YAML schema, its loader and validation (`load_cell`, `CellConfig`)."""
 
 from normpos_grasp.cell.config import (
+    BUILTIN_CELLS,
     BinSpec,
     BoxSpec,
     CellConfig,
@@ -9,9 +10,11 @@ from normpos_grasp.cell.config import (
     cell_from_dict,
     load_cell,
     parse_pose,
+    resolve_cell,
 )
 
 __all__ = [
+    "BUILTIN_CELLS",
     "BinSpec",
     "BoxSpec",
     "CellConfig",
@@ -20,4 +23,5 @@ __all__ = [
     "cell_from_dict",
     "load_cell",
     "parse_pose",
+    "resolve_cell",
 ]

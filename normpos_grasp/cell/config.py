@@ -7,9 +7,11 @@ Poses in the file are either `{xyz: [x, y, z], rpy_deg: [roll, pitch, yaw]}` (me
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from difflib import get_close_matches
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -167,6 +169,15 @@ class CellConfig:
     extra: dict[str, Any] = field(default_factory=dict)
     robot_serial: str | None = None
     floor_z: float | None = None
+    source_sha256: str = ""  # of the file it was read from ('' for a cell built from a mapping)
+
+    def record(self) -> dict[str, str]:
+        """What a plan records of the cell it was made in: name, file path and the file's SHA-256."""
+        out = {"name": self.name}
+        if self.source is not None:
+            out["path"] = str(Path(self.source).resolve())
+            out["sha256"] = self.source_sha256
+        return out
 
     @property
     def entry_z(self) -> float:
@@ -189,6 +200,21 @@ class CellConfig:
         return pose
 
 
+BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction")  # packaged in normpos_grasp/examples/cells
+
+
+def resolve_cell(name_or_path: str | Path) -> CellConfig:
+    """A packaged example cell by name (one of BUILTIN_CELLS) or a cell YAML path: every command takes either."""
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        return load_cell(path)
+    packaged = resources.files("normpos_grasp.examples").joinpath("cells", f"{name_or_path}.yaml")
+    if not packaged.is_file():
+        raise InputError(f"unknown cell {str(name_or_path)!r}: give a YAML path or one of {', '.join(BUILTIN_CELLS)}")
+    with resources.as_file(packaged) as file:
+        return load_cell(file)
+
+
 def load_cell(path: str | Path) -> CellConfig:
     """Read and validate a cell YAML file; relative paths inside resolve against its folder.
 
@@ -198,7 +224,8 @@ def load_cell(path: str | Path) -> CellConfig:
         data = load_yaml_file(p)
     except InputError as exc:
         raise CellConfigError(str(exc)) from exc
-    return cell_from_dict(data, base_dir=p.parent, source=p)
+    cell = cell_from_dict(data, base_dir=p.parent, source=p)
+    return replace(cell, source_sha256=hashlib.sha256(p.read_bytes()).hexdigest())
 
 
 def _err(path: str, msg: str) -> CellConfigError:

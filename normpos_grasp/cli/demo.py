@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from normpos_grasp.demo import BUILTIN_CELLS, DemoOptions, run_demo
+from normpos_grasp.cell.config import BUILTIN_CELLS
+from normpos_grasp.demo import DemoOptions, run_demo
 from normpos_grasp.loop import PickRecord
 
 

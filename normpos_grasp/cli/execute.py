@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 from normpos_grasp.errors import InputError
@@ -47,7 +48,12 @@ def register(subparsers: Any) -> None:
     parser.add_argument("plan", help="plan.json written by `normpos-grasp plan`")
     parser.add_argument("--robot", required=True, help="controller address (e.g. 192.168.1.10, 127.0.0.1), or 'sim'")
     parser.add_argument("--execute", action="store_true", help="send the plan (default: dry run)")
-    parser.add_argument("--cell", default=None, help="cell YAML: take speed/acceleration caps and workspace from it")
+    parser.add_argument(
+        "--cell",
+        default=None,
+        help="cell YAML or packaged cell name: the judge of the plan (workspace, mounted tool, caps); default: the "
+        "cell the plan records it was made in",
+    )
     parser.add_argument("--speed-fraction", type=float, default=1.0, help="fraction of rated joint speeds allowed")
     parser.add_argument(
         "--max-joint-accel",
@@ -78,19 +84,48 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(handler=run)
 
 
-def _limits(args: argparse.Namespace, robot: str) -> SafetyLimits:
-    if args.cell:
-        from normpos_grasp.cell import load_cell
+def _limits(args: argparse.Namespace, plan: dict[str, Any], robot: str) -> tuple[SafetyLimits, str | None]:
+    """The limits that judge the plan: its cell's (--cell, else the cell the plan records), or a bare arm's with an
+    explicit --workspace box; no cell and no box is refused (the arm would have no workspace at all). Also returns
+    the controller serial number the cell names (None: not checked)."""
+    from normpos_grasp.cell import resolve_cell
 
-        return SafetyLimits.from_cell(load_cell(args.cell))
+    raw = plan.get("cell")
+    recorded: dict[str, Any] = raw if isinstance(raw, dict) else {}
+    if args.cell:
+        cell = resolve_cell(args.cell)
+    elif recorded.get("path"):
+        path = Path(str(recorded["path"]))
+        if not path.is_file():
+            raise InputError(
+                f"the plan was made in cell {recorded.get('name', '?')!r} ({path}), which is not here: pass --cell"
+            )
+        cell = resolve_cell(path)
+        if recorded.get("sha256") and cell.source_sha256 != recorded["sha256"]:
+            raise InputError(f"cell file {path} changed since the plan was made: re-plan, or pass --cell to judge it")
+    elif args.workspace is None:
+        raise InputError(
+            "no cell to judge the plan against: pass --cell CELL.yaml (or --workspace XMIN YMIN ZMIN XMAX YMAX ZMAX "
+            "for an arm outside any cell)"
+        )
+    else:
+        cell = None
+    if cell is not None:
+        if cell.robot_model != robot:
+            raise InputError(f"plan is for {robot!r} but cell {cell.name!r} has a {cell.robot_model!r}")
+        limits = SafetyLimits.from_cell(cell, max_tool_accel=cell.motion.tcp_acceleration_m_s2)
+        if args.workspace is not None:
+            raise InputError("--workspace is for an arm outside any cell; the cell's workspace judges this plan")
+        return limits, cell.robot_serial
     ws = args.workspace
-    return SafetyLimits.for_model(
+    bare = SafetyLimits.for_model(
         robot,
-        workspace_min=None if ws is None else ws[:3],
-        workspace_max=None if ws is None else ws[3:],
+        workspace_min=ws[:3],
+        workspace_max=ws[3:],
         speed_fraction=args.speed_fraction,
         max_joint_accel=args.max_joint_accel,
     )
+    return bare, None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -101,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
     )
     plan = load_plan(args.plan)
     parsed = parse_plan(plan)
-    limits = _limits(args, parsed.robot)
+    limits, cell_serial = _limits(args, plan, parsed.robot)
+    serial = args.robot_serial or cell_serial
     if not args.execute:
         report = execute_plan(None, plan, limits, dry_run=True)
     else:
@@ -111,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
             driver: SupervisedRtdeDriver | SimDriver = SimDriver(limits, gripper, q_home=parsed.q[0])
         else:
             driver = SupervisedRtdeDriver(
-                args.robot, limits, gripper, DriverOptions(), expected_serial=args.robot_serial
+                args.robot, limits, gripper, DriverOptions(), expected_serial=serial
             )
         with stop_signals():
             try:

@@ -164,7 +164,7 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from normpos_grasp.demo import resolve_cell
+    from normpos_grasp.cell import resolve_cell
     from normpos_grasp.errors import InputError
     from normpos_grasp.execution import DriverOptions, SafetyLimits, SimDriver, SupervisedRtdeDriver, stop_signals
     from normpos_grasp.execution.interrupts import exit_code, signal_name

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     if args.cell_scenes > 0:
         if args.cell is None:
             raise InputError("--cell-scenes needs --cell (a packaged cell name or a cell YAML)")
-        from normpos_grasp.demo import resolve_cell
+        from normpos_grasp.cell import resolve_cell
 
         cell = resolve_cell(args.cell)
         seeds = range(args.cell_first_seed, args.cell_first_seed + args.cell_scenes)

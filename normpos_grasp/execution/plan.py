@@ -157,12 +157,28 @@ def parse_plan(plan: dict[str, Any]) -> ParsedPlan:
 
 
 def check_plan(parsed: ParsedPlan, limits: SafetyLimits) -> SafetyLimits:
-    """Check every waypoint, every joint segment and the trajectory; returns the limits used (with the plan's tool).
+    """Check every waypoint, every joint segment and the trajectory; returns the limits used.
 
+    With a cell's limits (`SafetyLimits.cell`) the cell is the judge: the plan's tool must be the mounted one and
+    its world_from_base the arm's mount (a plan can never swap in a shorter tool to pass the workspace check).
+    With a bare arm's limits the plan's tool is the only one known and is used for the workspace check.
     Raises SafetyViolation (nothing sent) or InputError (plan for another robot)."""
     if parsed.robot != limits.model:
         raise InputError(f"plan is for {parsed.robot!r} but the limits are for {limits.model!r}; wrong robot?")
-    if parsed.flange_from_tcp is not None:
+    if limits.cell:
+        if parsed.flange_from_tcp is not None and not np.allclose(
+            parsed.flange_from_tcp, limits.flange_from_tcp, atol=1e-6
+        ):
+            raise SafetyViolation(
+                f"the plan's tool (flange_from_tcp) is not the tool mounted in cell {limits.cell!r}: re-plan in this "
+                "cell; nothing was sent"
+            )
+        if not np.allclose(parsed.world_from_base, limits.box_from_base, atol=1e-6):
+            raise SafetyViolation(
+                f"the plan's world_from_base is not the arm's mount in cell {limits.cell!r}: re-plan in this cell; "
+                "nothing was sent"
+            )
+    elif parsed.flange_from_tcp is not None:
         limits = replace(limits, flange_from_tcp=parsed.flange_from_tcp)
     limits.check_joints(parsed.q, "waypoint")
     for i in range(len(parsed.q) - 1):

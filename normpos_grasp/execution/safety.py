@@ -38,6 +38,8 @@ class SafetyLimits:
     by box_from_base (4, 4) (world_from_base for a cell's world-frame box).
     flange_from_tcp: (4, 4) tool transform used for the workspace check (identity: the flange).
     max_tool_speed: m/s cap for Cartesian moves. max_tool_accel: m/s^2.
+    cell: the cell's name when the limits come from a cell (`from_cell`): its tool is the mounted one and its
+    world_from_base the arm's mount, so a plan may replace neither ('' for limits of a bare arm).
     """
 
     model: str
@@ -51,6 +53,7 @@ class SafetyLimits:
     max_tool_speed: float = 1.0
     max_tool_accel: float = 2.0
     box_from_base: FloatArray = field(default_factory=lambda: np.eye(4))
+    cell: str = ""
 
     def __post_init__(self) -> None:
         """Caps must be positive, finite and within the robot's rated joint speeds and the acceleration ceilings."""
@@ -92,6 +95,7 @@ class SafetyLimits:
             max_tool_speed=float(motion.tcp_speed_m_s),
             max_tool_accel=max_tool_accel,
             box_from_base=check_pose(cell.world_from_base, "cell.world_from_base"),
+            cell=str(cell.name) or "cell",
         )
 
     @classmethod

@@ -298,6 +298,7 @@ def plan_from_candidates(
         n_feasible=n_feasible,
         timing_ms=timing,
         place=place_name,
+        cell=cell.record(),
     )
 
 

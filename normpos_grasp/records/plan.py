@@ -74,7 +74,9 @@ class Waypoint:
 @dataclass(frozen=True, eq=False)
 class PickPlan:
     """Result of `plan_pick`. status: 'ok' or 'no_feasible_grasp'. chosen: the evaluation of the grasp taken.
-    counts: rejection counts by reason over all candidates. timing_ms: stage times."""
+    counts: rejection counts by reason over all candidates. timing_ms: stage times.
+    cell: the cell it was planned in ({name, path, sha256} of the cell file; empty for a cell built in memory):
+    `execute` judges the plan against that cell when no --cell is given."""
 
     status: PlanStatus
     robot: str
@@ -89,6 +91,7 @@ class PickPlan:
     n_feasible: int
     timing_ms: dict[str, float] = field(default_factory=dict)
     place: str = ""
+    cell: dict[str, str] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The documented plan.json mapping (docs/grasping.md)."""
@@ -100,6 +103,7 @@ class PickPlan:
             "robot": self.robot,
             "world_from_base": np.asarray(self.world_from_base).tolist(),
             "tool": self.tool.to_json(opening),
+            "cell": dict(self.cell),
             "target": None,
             "grasp": None,
             "joint_waypoints": [

@@ -172,6 +172,9 @@ def _q(state: dict[str, str]) -> np.ndarray:
     return np.array([float(v) for v in state["q"].strip("[]").split(",")])
 
 
+BARE_ARM_WORKSPACE = ("-2", "-2", "-2", "2", "2", "2")  # m, base frame: the campaign's arm stands in no cell
+
+
 def write_plan(path: Path, robot: str, q0: np.ndarray, q1: np.ndarray, duration_s: float | None) -> Path:
     """A two-waypoint plan.json (start, end); with `duration_s`, a cosine-profile trajectory of samples every 10 ms."""
     plan: dict[str, Any] = {
@@ -237,6 +240,8 @@ class Campaign:
 
     # ------------------------------------------------------------------ helpers
     def _cli(self, *args: str) -> list[str]:
+        if args and args[0] == "execute":  # bare-arm plans (no cell): the box execute requires, 2 m about the base
+            args = (*args, "--workspace", *BARE_ARM_WORKSPACE)
         return [sys.executable, "-m", "normpos_grasp.cli.main", *args]
 
     def _start(self, cmd: list[str]) -> subprocess.Popen[str]:
