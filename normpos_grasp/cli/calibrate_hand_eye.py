@@ -213,9 +213,9 @@ def run_hand_eye(args: argparse.Namespace) -> int:
     world_from_base = np.eye(4)
     cell = None
     if args.cell is not None:
-        from normpos_grasp.cell.config import load_cell
+        from normpos_grasp.cell.config import resolve_cell
 
-        cell = load_cell(args.cell)
+        cell = resolve_cell(args.cell)
         world_from_base = cell.world_from_base
     poses = read_poses_csv(args.poses)
     if len(poses) != len(args.images):

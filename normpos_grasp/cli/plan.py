@@ -27,7 +27,7 @@ def register(subparsers: Any) -> None:
         description="Segment a BOP frame, measure norm-positions, fit templates and plan a collision-free pick.",
     )
     p.add_argument("scene", type=Path, help="BOP scene folder (scene_camera.json, rgb/, depth/)")
-    p.add_argument("--cell", type=Path, required=True, help="cell description (YAML, see docs/cells.md)")
+    p.add_argument("--cell", required=True, help="cell YAML (docs/cells.md) or a packaged cell name")
     p.add_argument("--im-id", type=int_in(0, 10**9), required=True, help="image id of the frame")
     p.add_argument("--out", type=Path, required=True, help="plan.json to write (refused when it exists)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -39,7 +39,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from normpos_grasp.cell import load_cell
+    from normpos_grasp.cell import resolve_cell
     from normpos_grasp.cli.measure import scene_segmenter
     from normpos_grasp.io.bop import BopScene, is_scene_dir
     from normpos_grasp.measure.measure import MeasureOptions, measure_instances
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     out = check_out_file(args.out, getattr(args, "overwrite", False))
-    cell = load_cell(args.cell)
+    cell = resolve_cell(args.cell)
     if not is_scene_dir(args.scene):
         raise InputError(f"{args.scene} is not a BOP scene folder (expected scene_camera.json, rgb/ and depth/)")
     scene = BopScene(args.scene)
