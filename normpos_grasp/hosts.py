@@ -64,3 +64,12 @@ def host_header_is_loopback(value: str | None) -> bool:
     if has_port and not (port.isascii() and port.isdigit() and 0 < int(port) < 65536):
         return False
     return is_loopback(host)
+
+
+def is_ipv4_loopback_literal(host: str) -> bool:
+    """True only for an IPv4 address literal in 127.0.0.0/8 (what a server binding an IPv4 socket may take);
+    names, '127.0.0.1.nip.io' and IPv6 are refused."""
+    try:
+        return ipaddress.IPv4Address(host.strip()).is_loopback
+    except ValueError:
+        return False

@@ -609,3 +609,16 @@ def test_open_mesh_is_repaired_without_networkx(monkeypatch: pytest.MonkeyPatch)
     wound, report = check_mesh(trimesh.Trimesh(sphere.vertices, faces, process=False), "mixed winding")
     assert report.winding_consistent and report.ok
     assert wound.volume == pytest.approx(sphere.volume, rel=1e-9)
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1.nip.io", "localhost", "::1", "10.0.0.1", "127.1", ""])
+def test_the_emulator_binds_only_an_ipv4_loopback_literal(host: str) -> None:
+    """A string prefix is no address check: names that resolve elsewhere, short forms and other nets are refused."""
+    from normpos_grasp.errors import InputError
+    from normpos_grasp.hosts import is_ipv4_loopback_literal
+    from normpos_grasp.sim.ur_emulator.process import EmulatorProcess
+
+    assert not is_ipv4_loopback_literal(host)
+    with pytest.raises(InputError, match="loopback"):
+        EmulatorProcess(host, "ur5e")
+    assert is_ipv4_loopback_literal("127.0.0.42") and is_ipv4_loopback_literal("127.0.0.1")

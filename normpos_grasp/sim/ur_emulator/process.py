@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from normpos_grasp.errors import ConnectionLost, DriverTimeout, InputError
+from normpos_grasp.hosts import is_ipv4_loopback_literal
 
 from .server import DASHBOARD_PORT
 
@@ -63,7 +64,7 @@ class EmulatorProcess:
         extra_args: tuple[str, ...] = (),
         verbose: int = 1,
     ) -> None:
-        if not host.startswith("127."):
+        if not is_ipv4_loopback_literal(host):
             raise InputError(f"the emulator binds only loopback addresses (127.x.y.z), got {host!r}")
         self.host = host
         self.model = model

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from normpos_grasp.errors import InputError, NormposError
+from normpos_grasp.hosts import is_ipv4_loopback_literal
 from normpos_grasp.kinematics.ur_params import ur_params
 
 from . import protocol as P
@@ -103,7 +104,7 @@ class UREmulator:
 
     def __init__(self, options: EmulatorOptions | None = None, ik: IKSolver | None = None) -> None:
         self.options = options or EmulatorOptions()
-        if not self.options.host.startswith("127."):
+        if not is_ipv4_loopback_literal(self.options.host):
             raise InputError(f"emulator host must be a loopback address 127.x.y.z, got {self.options.host!r}")
         params = ur_params(self.options.model)
         self.controller = EmulatedController(params, self.options, ik if ik is not None else load_ik(params.name))
