@@ -174,6 +174,7 @@ def main() -> int:
         code, wall, seen, err, at_scenes = run_cli(cmd, out, first, sig)
         codes, lost, sent_at = [code], orphans(seen), [at_scenes]
         stderr_lines = [len(err.strip().splitlines())]
+        extra = [err.strip()] if stderr_lines[0] > 1 else []  # more than the one line: kept for the record
         resumes = 0
         while codes[-1] != 0 and resumes < 3:
             again = moment() if (a.interrupt_resumes and resumes == 0) else None
@@ -183,6 +184,8 @@ def main() -> int:
             sent_at.append(at_scenes)
             lost += orphans(seen)
             stderr_lines.append(len(err.strip().splitlines()))
+            if stderr_lines[-1] > 1:
+                extra.append(err.strip())
             resumes += 1
         same = codes[-1] == 0 and all((out / n).read_bytes() == (ref / n).read_bytes() for n in COMPARED)
         row = {
@@ -194,6 +197,7 @@ def main() -> int:
             "scene_files_at_signal": sent_at,
             "codes": codes,
             "stderr_lines": stderr_lines,
+            "stderr_extra": extra,
             "identical": same,
             "orphans": len(lost),
             "wall_s": round(wall, 1),
