@@ -622,3 +622,18 @@ def test_the_emulator_binds_only_an_ipv4_loopback_literal(host: str) -> None:
     with pytest.raises(InputError, match="loopback"):
         EmulatorProcess(host, "ur5e")
     assert is_ipv4_loopback_literal("127.0.0.42") and is_ipv4_loopback_literal("127.0.0.1")
+
+
+def test_simulate_refuses_an_unknown_gripper_before_writing(tmp_path: Path) -> None:
+    """`--gripper bogus` was silently ignored (the cell's tool was simulated): now one line, exit 2, nothing written.
+    The packaged cell name is accepted like a path."""
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [sys.executable, "-m", "normpos_grasp.cli.main", "simulate", "--cell", "ur5e_bin_parallel", "--scenes", "1",
+         "--out", str(out), "--gripper", "bogus", "--no-progress"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and "unknown gripper 'bogus'" in lines[0] and "2f85" in lines[0]
+    assert not out.exists()

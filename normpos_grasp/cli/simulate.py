@@ -38,7 +38,7 @@ def register(subparsers: Any) -> None:
         "finished scene under scenes/, and at the end picks.csv, timing.json, PNG plots and summary.json to "
         "--out. An interrupted run (Ctrl-C, SIGTERM) keeps its finished scenes: continue it with --resume.",
     )
-    parser.add_argument("--cell", required=True, help="cell YAML (needs a bin and a camera pose)")
+    parser.add_argument("--cell", required=True, help="cell YAML or packaged cell name (needs a bin and a camera pose)")
     parser.add_argument("--scenes", type=int_in(1, MAX_SCENES), default=10, help=f"number of scenes, 1..{MAX_SCENES}")
     parser.add_argument("--sensor", default="d435", choices=sorted(SENSOR_PRESETS), help="sensor model preset")
     parser.add_argument("--seed", type=int_in(0, 2**32 - 1), default=0, help="batch seed (scenes are seeded from it)")
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from normpos_grasp.cell.config import load_cell
+    from normpos_grasp.cell.config import resolve_cell
     from normpos_grasp.errors import InputError, SimulationError
     from normpos_grasp.sim.cameras import parse_resolution
     from normpos_grasp.simulate.batch import (
@@ -131,14 +131,15 @@ def _run(args: argparse.Namespace) -> int:
         timing_summary,
         write_results,
     )
-    from normpos_grasp.simulate.episode import SimulationConfig
+    from normpos_grasp.simulate.episode import SimulationConfig, gripper_spec
 
     resolution = parse_resolution(args.resolution)
     if not all(MIN_SIDE <= side <= MAX_SIDE for side in resolution):
         raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
     parts = () if args.parts == "default" else tuple(p.strip() for p in args.parts.split(",") if p.strip())
+    cell = resolve_cell(args.cell)  # the input is read and checked before anything is written
     config = SimulationConfig(
-        cell_path=str(args.cell),
+        cell_path=str(cell.source),
         sensor=args.sensor,
         seed=args.seed,
         parts=parts,
@@ -152,12 +153,12 @@ def _run(args: argparse.Namespace) -> int:
         relaxed_plan=not args.no_relaxed_plan,
         pick_unmatched=not args.no_pick_unmatched,
     )
-    cell = load_cell(args.cell)  # the input is read and checked before anything is written
     if cell.bin is None or cell.world_from_camera is None:
         raise InputError(
             f"--cell {args.cell}: simulate needs a cell with a bin and a camera pose "
             f"({'no bin' if cell.bin is None else 'no camera pose'})"
         )
+    gripper_spec(cell, args.gripper)  # an unknown --gripper is refused here, not in the workers
     params = run_parameters(config, args.scenes)
     out = Path(args.out)
     folder = RunFolder(out)

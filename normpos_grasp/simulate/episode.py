@@ -174,15 +174,24 @@ def scene_seed(seed: int, scene_index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(scene_index), 0x51D]).generate_state(1)[0])
 
 
-def _gripper_spec(cell: Any, override: str) -> GripperSpec:
+PHYSICS_PRESETS = ("2f85", "2f140", "suction")
+
+
+def gripper_spec(cell: Any, override: str) -> GripperSpec:
+    """The physics model of the cell's gripper, or of `override` (a packaged gripper or a preset name)."""
     from normpos_grasp.kinematics.gripper import Gripper
 
     name = override or str(getattr(cell.tool, "name", ""))
     try:
         return GripperSpec.from_gripper(Gripper.load(name))
-    except NormposError as exc:  # an unknown name falls back to the preset of the tool kind
+    except NormposError as exc:  # the cell's own tool may be unpackaged: the preset of its kind stands in
+        if override and override not in PHYSICS_PRESETS:
+            raise InputError(
+                f"unknown gripper {override!r} for --gripper: give a packaged gripper or one of "
+                f"{', '.join(PHYSICS_PRESETS)} ({exc})"
+            ) from exc
         logger.debug("gripper %r not packaged (%s); using the %s preset", name, exc, cell.tool.kind)
-    if name in ("2f85", "2f140", "suction"):
+    if name in PHYSICS_PRESETS:
         return GripperSpec.preset(name)
     spec = GripperSpec.preset("suction" if cell.tool.kind == "suction" else "2f85")
     if cell.tool.kind == "parallel" and cell.tool.stroke_m > 0:
@@ -254,7 +263,7 @@ def _setup(config: SimulationConfig) -> _Setup:
     setup = _Setup(
         cell=cell,
         library=library,
-        spec=_gripper_spec(cell, config.gripper),
+        spec=gripper_spec(cell, config.gripper),
         sensor=sensor_preset(config.sensor),
         camera=camera,
         samples={t.name: _model_points(t) for t in library},
