@@ -26,6 +26,7 @@ LAYERS: tuple[str, ...] = (
     "errors",
     "models",  # the bundled ONNX model files (no code)
     "hosts",  # loopback address checks (standard library only)
+    "atomic",  # files replaced only when completely written (standard library only)
     "typing",
     "validation",
     "geometry",

@@ -27,10 +27,10 @@ import cv2
 import numpy as np
 import pytest
 
+from normpos_grasp.atomic import atomic_open, atomic_write_bytes
 from normpos_grasp.cli.main import main
 from normpos_grasp.errors import DatasetError
 from normpos_grasp.hosts import host_header_is_loopback, is_loopback
-from normpos_grasp.io.atomic import atomic_open, atomic_write_bytes
 from normpos_grasp.io.bop import BopScene
 
 ERROR_LINE = re.compile(r"^normpos-grasp [a-z-]+( [a-z-]+)?: error: \S")

@@ -13,17 +13,15 @@ loader ignores it, `read_flange_from_camera` reads it.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.camera.hand_eye import MAX_FLANGE_DISTANCE_M, MAX_ROTVEC_RAD, check_flange_poses
 from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.transforms import pose_to_ur
@@ -91,7 +89,7 @@ def write_poses_csv(path: str | Path, poses: ArrayLike) -> None:
     out.writerow(POSE_COLUMNS)
     for m in mats:
         out.writerow([f"{v:.9f}" for v in pose_to_ur(m)])
-    _atomic_write(Path(path), buf.getvalue())
+    atomic_write_text(path, buf.getvalue())
 
 
 def read_flange_from_camera(path: str | Path) -> FloatArray:
@@ -107,17 +105,3 @@ def read_flange_from_camera(path: str | Path) -> FloatArray:
     if np.linalg.norm(pose[:3, 3]) > 1.0:
         raise InputError(f"{p}: flange_from_camera puts the camera {np.linalg.norm(pose[:3, 3]):.4g} m from the flange")
     return pose
-
-
-def _atomic_write(target: Path, text: str) -> None:
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".partial", dir=target.parent)
-    try:
-        if hasattr(os, "fchmod"):
-            os.fchmod(fd, 0o644)  # mkstemp's 0o600 would hide the file from other users of the cell PC
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(name, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(name)
-        raise

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.errors import ExtrinsicsError, InputError
 from normpos_grasp.geometry.transforms import invert_pose, transform_points
 from normpos_grasp.typing import ArrayLike, FloatArray, UInt8Array
@@ -273,10 +274,7 @@ class Camera:
 
     def save_json(self, path: str | Path) -> None:
         """Write the camera as JSON atomically (a temporary file renamed into place)."""
-        target = Path(path)
-        tmp = target.with_name(target.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=2))
-        tmp.replace(target)
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=2))
 
     @classmethod
     def load_json(cls, path: str | Path) -> Camera:

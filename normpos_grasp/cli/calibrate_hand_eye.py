@@ -176,6 +176,7 @@ def _board(text: str) -> tuple[int, int]:
 
 def run_hand_eye(args: argparse.Namespace) -> int:
     """Handler of `calibrate hand-eye`; returns the exit code (0 written, 1 verification failed)."""
+    from normpos_grasp.atomic import atomic_write_text
     from normpos_grasp.camera.hand_eye import (
         EYE_TO_HAND,
         HandEyeOptions,
@@ -187,7 +188,6 @@ def run_hand_eye(args: argparse.Namespace) -> int:
     )
     from normpos_grasp.camera.hand_eye_io import read_poses_csv
     from normpos_grasp.camera.model import Camera
-    from normpos_grasp.io.atomic import atomic_write_text
 
     opts = HandEyeOptions(board=_board(args.board), square_m=args.square, max_rms_px=args.max_rms)
     if args.record is not None:

@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.cli.args import add_segmenter_args, check_out_file, float_in, int_in
 from normpos_grasp.cli.measure import scene_segmenter
 from normpos_grasp.errors import InputError
-from normpos_grasp.io.atomic import atomic_write_text
 
 logger = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_bytes, atomic_write_text
 from normpos_grasp.cli.args import OVERWRITE_HELP, add_segmenter_args, check_out_dir, int_in
 from normpos_grasp.errors import InputError, MeasurementError, NormposError
-from normpos_grasp.io.atomic import atomic_write_bytes, atomic_write_text
 from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
 from normpos_grasp.measure.depth import MAX_HALF_WINDOW, DepthFillOptions
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances, normpos_to_dict

@@ -15,9 +15,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.cli.args import add_segmenter_args, check_out_file, int_in
 from normpos_grasp.errors import InputError, NormposError, TemplateError
-from normpos_grasp.io.atomic import atomic_write_text
 
 
 def register(subparsers: Any) -> None:

@@ -21,9 +21,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.cli.args import OVERWRITE_HELP, float_in, int_in
 from normpos_grasp.errors import InputError
-from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.sim.cameras import parse_resolution
 from normpos_grasp.sim.scene import CONTAINERS, SceneOptions
 from normpos_grasp.sim.sensor import SENSOR_PRESETS

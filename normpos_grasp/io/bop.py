@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_bytes
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import DatasetError, InputError, MeshError
-from normpos_grasp.io.atomic import atomic_write_bytes
 from normpos_grasp.io.ply import write_mesh_ply
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, UInt8Array, UInt16Array
 from normpos_grasp.validation import as_float_array, check_pose

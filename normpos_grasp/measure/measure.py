@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError, MeasurementError
 from normpos_grasp.geometry.transforms import transform_points
-from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.measure.depth import DepthFillOptions, fill_depth
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.kinds import Frame

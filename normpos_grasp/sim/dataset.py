@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.errors import InputError
-from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.cameras import CameraOptions, sample_camera

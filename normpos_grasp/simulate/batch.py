@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp import __version__
+from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.errors import InputError, MissingDependency, SimulationError
-from normpos_grasp.io.atomic import atomic_write_text
 from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, run_scene
 from normpos_grasp.simulate.signals import Interrupted, init_worker, signals_deferred, signals_ignored, signals_raise
 

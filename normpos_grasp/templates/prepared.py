@@ -9,7 +9,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import tempfile
 import threading
 import time
 import weakref
@@ -23,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from normpos_grasp.atomic import atomic_open
 from normpos_grasp.records.template import Template
 
 if TYPE_CHECKING:
@@ -245,23 +245,16 @@ def _load(path: Path, key: str) -> dict[str, np.ndarray] | None:
 def _store(path: Path, key: str, arrays: dict[str, np.ndarray]) -> bool:
     """Write `arrays` (and `key`) to `path` atomically (temporary file + rename); False when the folder is not
     writable."""
-    tmp: Path | None = None
     try:
         fresh = not path.parent.exists()
         path.parent.mkdir(parents=True, exist_ok=True)
         if fresh and path.parent.name == CACHE_FOLDER:  # keep the cache out of version control
             (path.parent / ".gitignore").write_text("*\n")
-        fd, name = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".npz")
-        tmp = Path(name)
-        with os.fdopen(fd, "wb") as f:
+        with atomic_open(path, "wb") as f:
             payload: dict[str, Any] = {"key": np.array(key), **arrays}
             np.savez_compressed(f, allow_pickle=False, **payload)
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; the cache is as readable as the templates
-        os.replace(tmp, path)
     except OSError as exc:
         logger.debug("cannot store the template preparation in %s: %s", path.parent, exc)
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
         return False
     return True
 
