@@ -23,8 +23,7 @@ from normpos_grasp.cell.config import CellConfig, resolve_cell
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.loop import PickRecord, SyntheticBinSource, run_cell_loop
-from normpos_grasp.perception.base import Segmenter
-from normpos_grasp.perception.factory import choose_segmenter
+from normpos_grasp.perception.factory import SegmenterChoice, choose_segmenter
 from normpos_grasp.report.frame import frame_overlay, frame_twin
 from normpos_grasp.report.html import report_page, table_html, write_page
 from normpos_grasp.report.overlay import encode_png
@@ -65,12 +64,11 @@ class DemoResult:
     summary: dict[str, Any]
 
 
-def demo_segmenter(kind: str, source: SyntheticBinSource | None = None) -> tuple[Segmenter, str]:
+def demo_segmenter(kind: str, source: SyntheticBinSource | None = None) -> SegmenterChoice:
     """The requested segmenter ('model' falls back to the depth segmenter, logged, when the bundled model cannot be
     loaded); 'gt' takes the synthetic bin's true masks (needs `source`): it checks everything after segmentation."""
     truth = source.ground_truth_segmenter if source is not None else None
-    choice = choose_segmenter("auto" if kind == "model" else kind, ground_truth=truth)
-    return choice.segmenter, choice.kind
+    return choose_segmenter("auto" if kind == "model" else kind, ground_truth=truth)
 
 
 @contextlib.contextmanager
@@ -132,7 +130,8 @@ def run_demo(
     cell = resolve_cell(opts.cell)
     step(f"dropping {opts.parts} parts into the bin (physics)")
     source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor, parts=opts.part_names)
-    segmenter, seg_kind = demo_segmenter(opts.segmenter, source)
+    choice = demo_segmenter(opts.segmenter, source)
+    segmenter, seg_kind = choice.segmenter, choice.kind
     from normpos_grasp.sim.parts import default_part_library
 
     library = default_part_library()

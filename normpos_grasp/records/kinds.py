@@ -1,5 +1,5 @@
-"""The closed sets of names the records use, as `Literal` types (mypy checks every assignment), with their values
-as tuples for validation at the boundary."""
+"""The closed sets of names the records use, as `Literal` types (mypy checks every assignment); FRAMES holds the
+values for validation at the boundary."""
 
 from __future__ import annotations
 
@@ -9,4 +9,3 @@ Frame = Literal["world", "camera"]
 PlanStatus = Literal["ok", "no_feasible_grasp"]
 
 FRAMES: tuple[Frame, ...] = get_args(Frame)
-PLAN_STATUSES: tuple[PlanStatus, ...] = get_args(PlanStatus)
