@@ -31,14 +31,14 @@ from normpos_grasp.report.overlay import encode_png
 log = logging.getLogger(__name__)
 
 
-
 @dataclass(frozen=True)
 class DemoOptions:
     """Demo settings. parts: parts dropped into the bin; max_picks: loop turns; sensor: depth-noise preset;
     segmenter: 'model' (bundled ONNX), 'depth' (model-free) or 'gt' (the synthetic truth masks); use_emulator:
     try the loopback UR controller first; emulator_host: 127.0.0.x address for it; arrive_tol_rad: a move is
     complete when every joint is this close to its goal, rad (the issue's 1e-3 rad execution tolerance);
-    part_names: library parts to draw from (empty: all)."""
+    part_names: library parts to draw from (empty: all); library: part libraries (templates.library.resolve_library
+    entries: folders or 'builtin'; empty = the built-in parts)."""
 
     cell: str = "ur5e_bin_parallel"
     seed: int = 0
@@ -50,6 +50,7 @@ class DemoOptions:
     emulator_host: str = "127.0.0.1"
     arrive_tol_rad: float = 1e-3
     part_names: tuple[str, ...] = ()
+    library: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,12 +130,12 @@ def run_demo(
     step("loading the cell")
     cell = resolve_cell(opts.cell)
     step(f"dropping {opts.parts} parts into the bin (physics)")
-    source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor, parts=opts.part_names)
+    from normpos_grasp.templates.library import resolve_library
+
+    library = list(resolve_library(opts.library))
+    source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor, library, parts=opts.part_names)
     choice = demo_segmenter(opts.segmenter, source)
     segmenter, seg_kind = choice.segmenter, choice.kind
-    from normpos_grasp.sim.parts import default_part_library
-
-    library = default_part_library()
     step("starting the loopback UR controller")
     with arm_driver(cell, opts, out / "emulator.log") as (driver, driver_kind, note):
         step(f"picking with the {driver_kind} driver")

@@ -69,8 +69,8 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_bop_round_trip(dataset: Path) -> None:
     models = read_models(dataset / "models")
     lib = part_library_by_name()
-    assert sorted(models) == [1, 2, 3]
-    ring = models[2]
+    assert sorted(models) == [1, 7, 8]  # the parts' own obj_ids (cube 1, bracket 7, ring 8), not their positions
+    ring = models[8]
     assert ring.diameter_m == pytest.approx(lib["ring"].diameter_m, abs=1e-6)
     assert len(ring.symmetries_continuous) == 1 and len(models[1].symmetries_discrete) == 23
     scenes = read_split(dataset / "train")
@@ -85,7 +85,7 @@ def test_bop_round_trip(dataset: Path) -> None:
             info = scene.gt_info(im_id)
             assert len(gts) == len(info) == 5
             for idx, gt in enumerate(gts):
-                assert gt.obj_id in (1, 2, 3)
+                assert gt.obj_id in (1, 7, 8)
                 # world pose from the GT and the camera extrinsics: a part resting in the bin
                 wfo = cam.world_from_camera @ gt.camera_from_object
                 assert -0.01 < wfo[2, 3] < 0.2 and np.all(np.abs(wfo[:2, 3]) < 0.25)

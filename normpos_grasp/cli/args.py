@@ -10,6 +10,7 @@ import argparse
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from normpos_grasp.errors import InputError
 
@@ -103,3 +104,41 @@ def add_segmenter_args(parser: argparse.ArgumentParser, default: str) -> None:
         help="ONNX segmentation model for --segmenter model/auto (default: the bundled one); "
         "--model and --onnx are older spellings",
     )
+
+
+#: help text of every `--library` flag
+LIBRARY_HELP = (
+    "part library: a folder of templates (template.yaml + mesh, e.g. made by `teach`), one template folder, a BOP "
+    "models folder (models_info.json + obj_XXXXXX.ply) or 'builtin' (the eight built-in parts); repeat to mix "
+    "libraries (for example --library builtin --library my_parts)"
+)
+
+
+def add_library_args(parser: argparse.ArgumentParser, default_help: str = "the built-in parts") -> None:
+    """The same `--library DIR` flag (repeatable; `--models` is the older spelling) in every command that makes or
+    uses scenes; read it back with `library_from_args`."""
+    parser.add_argument(
+        "--library",
+        "--models",
+        dest="library",
+        action="append",
+        metavar="DIR",
+        default=None,
+        help=f"{LIBRARY_HELP}; default: {default_help}",
+    )
+
+
+def library_paths(args: argparse.Namespace) -> tuple[str, ...]:
+    """The `--library` entries of `args`, in order (empty when none was given)."""
+    return tuple(str(p) for p in (getattr(args, "library", None) or ()))
+
+
+def library_from_args(args: argparse.Namespace, fallback: str | Path | None = None) -> Any:
+    """The command's `TemplateLibrary` (templates.library.resolve_library): the `--library` entries, else
+    `fallback` (for example a cell's templates), else the built-in parts."""
+    from normpos_grasp.templates.library import resolve_library
+
+    paths = library_paths(args)
+    if not paths and fallback is not None:
+        paths = (str(fallback),)
+    return resolve_library(paths)

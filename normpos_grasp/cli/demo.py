@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from normpos_grasp.cell.config import BUILTIN_CELLS
+from normpos_grasp.cli.args import add_library_args, library_from_args, library_paths
 from normpos_grasp.demo import DemoOptions, run_demo
 from normpos_grasp.loop import PickRecord
 
@@ -22,6 +23,7 @@ def register(sub: Any) -> None:
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
     parser.add_argument("--parts", type=int, default=4, help="parts dropped into the bin")
     parser.add_argument("--part-names", default="", help="comma-separated part names to drop (default: all)")
+    add_library_args(parser)
     parser.add_argument("--max-picks", type=int, default=8, help="most picks to attempt")
     parser.add_argument(
         "--segmenter",
@@ -46,7 +48,11 @@ def run(args: argparse.Namespace) -> int:
         use_emulator=not args.no_emulator,
         emulator_host=args.emulator_host,
         part_names=tuple(n for n in args.part_names.split(",") if n),
+        library=library_paths(args),
     )
+    library = library_from_args(args)  # a bad library or an unknown part is refused before the demo starts
+    if options.part_names:
+        library.subset(options.part_names)
     bar = tqdm(total=None, desc="demo", unit=" step", leave=False)
 
     def on_step(message: str) -> None:

@@ -1,12 +1,15 @@
-"""`normpos-grasp estimate SPLIT --models MODELS --out results.csv`: 6D poses in the BOP results format.
+"""`normpos-grasp estimate SPLIT [--library DIR ...] --out results.csv`: 6D poses in the BOP results format.
 
 For every frame of every scene of a BOP split: segment (bundled ONNX model, depth segmenter or BOP GT
-masks), measure the norm-positions, fit the templates of MODELS and write one CSV row per accepted fit:
+masks, whose obj_ids are matched to the library's parts), measure the norm-positions, fit the templates of the
+part library (default: the built-in parts, obj_id 1..8) and write one CSV row per accepted fit, with the
+template's own obj_id:
 `scene_id,im_id,obj_id,score,R,t,time` (R row-major, 9 values space-separated; t in mm; time in s per
 image), which the BOP toolkit scores directly.
 
 The CSV is written under a temporary name and moved into place only when every frame is done, so an error
-leaves no (header-only or partial) results file; an existing --out is refused unless --overwrite.
+leaves no (header-only or partial) results file; an existing --out is refused unless --overwrite. A run that
+finds instances but accepts no pose says why (the commonest rejection reasons) on stderr.
 """
 
 from __future__ import annotations
@@ -15,14 +18,24 @@ import argparse
 import csv
 import io
 import logging
+import re
+import sys
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from normpos_grasp.atomic import atomic_write_text
-from normpos_grasp.cli.args import add_segmenter_args, check_out_file, float_in, int_in
+from normpos_grasp.cli.args import (
+    add_library_args,
+    add_segmenter_args,
+    check_out_file,
+    float_in,
+    int_in,
+    library_from_args,
+)
 from normpos_grasp.cli.measure import scene_segmenter
 from normpos_grasp.errors import InputError
 
@@ -37,7 +50,7 @@ def register(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("split", help="BOP split folder (for example test/) holding numeric scene folders")
-    p.add_argument("--models", required=True, help="template library: BOP models folder or template folders")
+    add_library_args(p)
     p.add_argument("--out", required=True, help="results CSV to write (refused when it exists, see --overwrite)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing results CSV")
     add_segmenter_args(p, "auto")
@@ -53,7 +66,6 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.io.bop import read_split
     from normpos_grasp.measure.measure import measure_instances
     from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best
-    from normpos_grasp.templates.library import load_library
     from normpos_grasp.templates.prepared import prepare
 
     out = check_out_file(Path(args.out), getattr(args, "overwrite", False))
@@ -62,17 +74,19 @@ def run(args: argparse.Namespace) -> int:
     for scene, ids in work:  # camera entries, depth scales and image headers, before the slow part
         for im_id in ids:
             scene.check_frame(im_id)
-    library = load_library(args.models)
+    library = library_from_args(args)
     for template in library:  # build the fitter's caches before timing frames
         prepare(template)
     options = FitOptions(depth_bias_m=float(args.depth_bias_mm) / 1000.0)
     n_rows = n_inst = n_frames = 0
+    reasons: Counter[str] = Counter()
+    unknown: Counter[int] = Counter()
     t_all = time.perf_counter()
     text = io.StringIO()
     writer = csv.writer(text)
     writer.writerow(["scene_id", "im_id", "obj_id", "score", "R", "t", "time"])
     for scene, ids in work:
-        choice = scene_segmenter(args.segmenter, scene, args.seg_model, None, library.labels)
+        choice = scene_segmenter(args.segmenter, scene, args.seg_model, None, library.labels, library)
         segmenter, args.segmenter_used = choice.segmenter, choice.kind
         for im_id in ids:
             frame = scene.load_frame(im_id)
@@ -85,18 +99,44 @@ def run(args: argparse.Namespace) -> int:
             n_frames += 1
             n_inst += len(normpos)
             for fit in fits:
+                if not fit.accepted:
+                    reasons[_reason_kind(fit.reason)] += 1
                 if not fit.accepted and not args.include_rejected:
                     logger.info("scene %d im %d: %s rejected: %s", scene.scene_id, im_id, fit.template.name, fit.reason)
                     continue
                 writer.writerow(_row(scene.scene_id, im_id, fit, frame.camera, dt))
                 n_rows += 1
+        unknown.update(getattr(segmenter, "unknown", {}))
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, text.getvalue())
     print(
         f"estimate: {n_rows} poses from {n_inst} instances in {n_frames} frames "
         f"({time.perf_counter() - t_all:.1f} s) -> {out}"
     )
+    if n_rows == 0 and n_inst > 0:
+        why = why_none(reasons, unknown, library)
+        print(f"estimate: no pose accepted from {n_inst} instances: {why}", file=sys.stderr)
     return 0
+
+
+def _reason_kind(reason: str) -> str:
+    """A rejection reason without its numbers, so that equal causes count together."""
+    return re.sub(r"[-+]?\d+(\.\d+)?(e[-+]?\d+)?", "#", reason).strip() or "rejected"
+
+
+def why_none(reasons: Counter[str], unknown: Counter[int], library: Any) -> str:
+    """One line saying why no pose was accepted: obj_ids the library lacks, then the commonest rejection reasons."""
+    parts = []
+    if unknown:
+        ids = ", ".join(f"{k} (x{v})" for k, v in sorted(unknown.items()))
+        parts.append(
+            f"the data's obj_ids {ids} are not in the part library ({library.describe()}); pass the --library the "
+            "data was made from"
+        )
+    top = "; ".join(f"{n} x {r}" for r, n in reasons.most_common(3))
+    if top:
+        parts.append(f"fits rejected: {top}")
+    return "; ".join(parts) or "every fit was rejected"
 
 
 def _row(scene_id: int, im_id: int, fit: Any, camera: Any, dt: float) -> list[str]:

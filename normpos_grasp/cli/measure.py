@@ -21,7 +21,15 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.atomic import atomic_write_bytes, atomic_write_text
-from normpos_grasp.cli.args import OVERWRITE_HELP, add_segmenter_args, check_out_dir, int_in
+from normpos_grasp.cli.args import (
+    LIBRARY_HELP,
+    OVERWRITE_HELP,
+    add_segmenter_args,
+    check_out_dir,
+    int_in,
+    library_from_args,
+    library_paths,
+)
 from normpos_grasp.errors import InputError, MeasurementError, NormposError
 from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
 from normpos_grasp.measure.depth import MAX_HALF_WINDOW, DepthFillOptions
@@ -40,6 +48,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="output folder (created; must be empty or absent)")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     add_segmenter_args(p, "gt")
+    p.add_argument("--library", action="append", metavar="DIR", default=None,
+                   help=f"{LIBRARY_HELP}; with it, ground-truth labels are the library's part labels (by obj_id) "
+                   "instead of obj_XXXXXX")  # fmt: skip
     p.add_argument("--models-dir", type=Path, default=None, help="BOP models folder to render GT masks when a scene "
                    "has no mask_visib (default: PATH/../models)")  # fmt: skip
     p.add_argument("--frames", type=str, default=None, help="comma-separated image ids (default: all)")
@@ -52,18 +63,56 @@ def register(subparsers: Any) -> None:
     p.set_defaults(handler=run)
 
 
+class LibraryLabels:
+    """A BOP ground-truth segmenter whose labels ('obj_000101') are the part library's labels of those obj_ids.
+
+    Objects the library does not hold keep their 'obj_XXXXXX' label (their fits are then rejected with a reason
+    that names it). `unknown` counts the instances of each such obj_id.
+    """
+
+    def __init__(self, inner: Segmenter, library: Any) -> None:
+        self.inner = inner
+        self.library = library
+        self.unknown: dict[int, int] = {}
+
+    def segment(self, frame: Any) -> list[Instance]:
+        from dataclasses import replace
+
+        out = []
+        for inst in self.inner.segment(frame):
+            label = inst.label
+            if label.startswith("obj_") and label[4:].isdigit():
+                obj_id = int(label[4:])
+                mapped = self.library.label_of_obj_id(obj_id)
+                if mapped is None:
+                    self.unknown[obj_id] = self.unknown.get(obj_id, 0) + 1
+                else:
+                    label = mapped
+            out.append(replace(inst, label=label))
+        return out
+
+
 def scene_segmenter(
-    kind: str, scene: BopScene, seg_model: Path | None, models_dir: Path | None, labels: Any = ()
+    kind: str,
+    scene: BopScene,
+    seg_model: Path | None,
+    models_dir: Path | None,
+    labels: Any = (),
+    library: Any = None,
 ) -> Any:
     """`perception.factory.choose_segmenter` for a BOP scene: 'gt' reads the scene's masks (rendered from the models
-    in `models_dir` when the scene has no mask_visib)."""
-    from normpos_grasp.perception.factory import choose_segmenter
+    in `models_dir` when the scene has no mask_visib); with a part `library` its labels are the library's labels
+    of the objects' obj_ids (`LibraryLabels`)."""
+    from normpos_grasp.perception.factory import SegmenterChoice, choose_segmenter
     from normpos_grasp.perception.gt import GroundTruthOptions, GroundTruthSegmenter
 
     md = None if models_dir is None else str(models_dir)
-    return choose_segmenter(
+    choice = choose_segmenter(
         kind, seg_model, labels, lambda: GroundTruthSegmenter(scene, GroundTruthOptions(models_dir=md))
     )
+    if choice.kind == "gt" and library is not None:
+        return SegmenterChoice(LibraryLabels(choice.segmenter, library), "gt")
+    return choice
 
 
 def run(args: argparse.Namespace) -> int:
@@ -90,13 +139,17 @@ def run(args: argparse.Namespace) -> int:
     for scene, ids in work:  # camera entries, depth scales and image headers, before anything is written
         for im_id in ids:
             scene.check_frame(im_id)
+    library = library_from_args(args) if library_paths(args) else None
+    labels = () if library is None else library.labels
     n_frames = n_objects = 0
     for scene, ids in work:
         segmenter: Segmenter | None = None
         out_dir = out_root / f"{scene.scene_id:06d}"
         for im_id in ids:
             if segmenter is None:
-                segmenter = scene_segmenter(args.segmenter, scene, args.seg_model, args.models_dir).segmenter
+                segmenter = scene_segmenter(
+                    args.segmenter, scene, args.seg_model, args.models_dir, labels, library
+                ).segmenter
             result = measure_frame(scene, im_id, segmenter, options, out_dir, write_ply=not args.no_ply)
             n_frames += 1
             n_objects += len(result["objects"])

@@ -1,4 +1,4 @@
-"""`normpos-grasp plan SCENE --cell CELL.yaml --im-id N --out plan.json [--models MODELS] [--segmenter ...]`:
+"""`normpos-grasp plan SCENE --cell CELL.yaml --im-id N --out plan.json [--library DIR ...] [--segmenter ...]`:
 segment -> measure -> fit -> plan one pick for a frame of a BOP scene; writes plan.json (docs/grasping.md).
 
 Exit codes: 0 a plan was found, 1 no feasible grasp (plan.json still written, with rejection counts), 2 bad input.
@@ -16,7 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from normpos_grasp.atomic import atomic_write_text
-from normpos_grasp.cli.args import add_segmenter_args, check_out_file, int_in
+from normpos_grasp.cli.args import (
+    add_library_args,
+    add_segmenter_args,
+    check_out_file,
+    int_in,
+    library_from_args,
+    library_paths,
+)
 from normpos_grasp.errors import InputError, NormposError, TemplateError
 
 
@@ -31,8 +38,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--im-id", type=int_in(0, 10**9), required=True, help="image id of the frame")
     p.add_argument("--out", type=Path, required=True, help="plan.json to write (refused when it exists)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    p.add_argument("--models", type=Path, default=None, help="template library or BOP models folder (parts the cell "
-                   "file does not list); default: the cell's `templates`")  # fmt: skip
+    add_library_args(p, "the cell's `templates`, else the built-in parts")
     add_segmenter_args(p, "gt")
     p.add_argument("--pick-unmatched", action="store_true", help="also pick objects no template matched (as boxes)")
     p.set_defaults(handler=run)
@@ -45,7 +51,6 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.measure.measure import MeasureOptions, measure_instances
     from normpos_grasp.planning import PlanOptions, plan_pick
     from normpos_grasp.templates.fit import FitContext, fit_best
-    from normpos_grasp.templates.library import load_library
 
     t0 = time.perf_counter()
     out = check_out_file(args.out, getattr(args, "overwrite", False))
@@ -54,17 +59,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{args.scene} is not a BOP scene folder (expected scene_camera.json, rgb/ and depth/)")
     scene = BopScene(args.scene)
     scene.check_frame(args.im_id)
-    models = args.models or cell.templates_path
-    if models is None:
-        raise InputError("no template library: pass --models or set `templates` in the cell file")
     frame = scene.load_frame(args.im_id)
     if cell.world_from_camera is not None:  # the cell's calibrated extrinsics win over the dataset's
         frame = replace(frame, camera=replace(frame.camera, world_from_camera=cell.world_from_camera))
     if frame.camera.world_from_camera is None:
         raise InputError("the frame's camera has no world_from_camera: give camera.world_from_camera in the cell file")
-    library = load_library(models)
-    models_dir = Path(models) if (Path(models) / "models_info.json").is_file() else None
-    segmenter = scene_segmenter(args.segmenter, scene, args.seg_model, models_dir, library.labels).segmenter
+    library = library_from_args(args, None if library_paths(args) else cell.templates_path)
+    bop_dirs = [Path(p) for p in library_paths(args) if (Path(p) / "models_info.json").is_file()]
+    models_dir = bop_dirs[0] if bop_dirs else None
+    segmenter = scene_segmenter(args.segmenter, scene, args.seg_model, models_dir, library.labels, library).segmenter
     t1 = time.perf_counter()
     instances = segmenter.segment(frame)
     t2 = time.perf_counter()

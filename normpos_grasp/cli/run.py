@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.cli.args import add_library_args
+
 SEGMENTERS = ("model", "depth", "gt")
 
 
@@ -58,13 +60,7 @@ def register(subparsers: Any) -> None:
         help="instance source: model (bundled ONNX), depth (model-free) or gt (BOP masks / synthetic truth); "
         "default: gt for BOP and synthetic sources, model for a camera",
     )
-    p.add_argument(
-        "--models",
-        type=Path,
-        default=None,
-        help="template library or BOP models folder; default: the synthetic part library for synthetic sources and "
-        "normpos_grasp BOP data, else the cell's templates",
-    )
+    add_library_args(p, "the built-in parts for synthetic sources and normpos_grasp BOP data, else the cell templates")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic bin")
     p.add_argument("--sensor", default="d435", help="depth-noise preset of the synthetic bin")
     p.add_argument("--parts", default="", help="comma-separated part names for the synthetic bin (default: all)")
@@ -104,12 +100,14 @@ def arm_state_dict(state: Any, world_from_base: Any) -> dict[str, Any]:
 
 def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
     """(source, template library, segmenter, source kind)."""
+    from normpos_grasp.cli.args import library_paths
     from normpos_grasp.errors import InputError
     from normpos_grasp.loop import BopFrameSource, SyntheticBinSource
     from normpos_grasp.pipeline import make_segmenter
     from normpos_grasp.sim.parts import default_part_library
-    from normpos_grasp.templates.library import load_library
+    from normpos_grasp.templates.library import resolve_library
 
+    models = library_paths(args)
     text = str(args.source)
     if text == "synthetic" or text.startswith("synthetic:"):
         count_text = text.partition(":")[2] or "6"
@@ -119,7 +117,7 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
             raise InputError(f"--source synthetic:N needs a whole number of parts, got {count_text!r}") from exc
         if count < 1:
             raise InputError(f"--source synthetic:N needs at least one part, got {count}")
-        library = list(load_library(args.models)) if args.models else default_part_library()
+        library = list(resolve_library(models))
         wanted = tuple(n for n in (args.parts or "").split(",") if n)
         source: Any = SyntheticBinSource(cell, count, args.seed, args.sensor, library, parts=wanted)
         kind = args.segmenter or "gt"
@@ -134,11 +132,12 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
         kind = args.segmenter or "model"
         if kind == "gt":
             raise InputError("--segmenter gt needs ground truth: use a BOP or synthetic source")
-        if args.models is None and cell.templates_path is None:
-            raise InputError("no template library: pass --models or set `templates` in the cell file")
+        if not models and cell.templates_path is None:
+            raise InputError("no template library: pass --library or set `templates` in the cell file")
         camera_source = RealSenseSource(cell.world_from_camera)
         try:
-            return camera_source, list(load_library(args.models or cell.templates_path)), make_segmenter(kind), "camera"
+            library = list(resolve_library(models or (str(cell.templates_path),)))
+            return camera_source, library, make_segmenter(kind), "camera"
         except BaseException:
             camera_source.close()
             raise
@@ -147,15 +146,15 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
         raise InputError(f"--source {text!r} is neither a folder, 'synthetic[:N]' nor 'realsense'")
     bop = BopFrameSource(path, cell.world_from_camera)
     names = bop.part_names()
-    if args.models is not None:
-        library = list(load_library(args.models))
+    if models:
+        library = list(resolve_library(models))
     elif names:
         by_name = {t.name: t for t in default_part_library()}
         library = [by_name[n] for n in dict.fromkeys(names.values()) if n in by_name]
     elif cell.templates_path is not None:
-        library = list(load_library(cell.templates_path))
+        library = list(resolve_library((str(cell.templates_path),)))
     else:
-        raise InputError("no template library: pass --models or set `templates` in the cell file")
+        raise InputError("no template library: pass --library or set `templates` in the cell file")
     if not library:
         raise InputError(f"the template library for {path} is empty")
     kind = args.segmenter or "gt"

@@ -17,7 +17,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from normpos_grasp.cli.args import OVERWRITE_HELP, check_out_dir, int_in
+from normpos_grasp.cli.args import (
+    OVERWRITE_HELP,
+    add_library_args,
+    check_out_dir,
+    int_in,
+    library_from_args,
+    library_paths,
+)
 from normpos_grasp.sim.sensor import SENSOR_PRESETS
 
 #: bounds of the numeric options (a larger value is refused with this range)
@@ -51,6 +58,7 @@ def register(subparsers: Any) -> None:
         "options must be those of the first command; --workers / --ray may differ; with --overwrite too, a "
         "folder without a run is replaced)",
     )
+    add_library_args(parser)
     parser.add_argument("--parts", default="default", help="'default' or comma-separated part names")
     parser.add_argument("--count", type=int_in(1, MAX_COUNT), default=8, help=f"parts per scene, 1..{MAX_COUNT}")
     parser.add_argument(
@@ -138,7 +146,12 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
     parts = () if args.parts == "default" else tuple(p.strip() for p in args.parts.split(",") if p.strip())
     cell = resolve_cell(args.cell)  # the input is read and checked before anything is written
+    libraries = tuple(p if p == "builtin" else str(Path(p).resolve()) for p in library_paths(args))
+    library = library_from_args(args)  # an unknown part or a bad library is refused before anything is written
+    if parts:
+        library.subset(parts)
     config = SimulationConfig(
+        library=libraries,
         cell_path=str(cell.source),
         sensor=args.sensor,
         seed=args.seed,

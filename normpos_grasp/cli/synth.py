@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from normpos_grasp.atomic import atomic_write_text
-from normpos_grasp.cli.args import OVERWRITE_HELP, float_in, int_in
+from normpos_grasp.cli.args import OVERWRITE_HELP, add_library_args, float_in, int_in, library_from_args, library_paths
 from normpos_grasp.errors import InputError
 from normpos_grasp.sim.cameras import parse_resolution
 from normpos_grasp.sim.scene import CONTAINERS, SceneOptions
@@ -61,7 +61,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--sensor", default="d435", choices=sorted(SENSOR_PRESETS), help="sensor model preset")
     parser.add_argument("--resolution", default="640x480",
                         help=f"image size WxH in pixels, each side {MIN_SIDE}..{MAX_SIDE}")  # fmt: skip
-    parser.add_argument("--parts", default="default", help="'default' or comma-separated part names")
+    add_library_args(parser)
+    parser.add_argument("--parts", default="default", help="'default' (every part of the library) or comma-separated "
+                        "part names from it")  # fmt: skip
     parser.add_argument("--count", type=int_in(0, MAX_COUNT), default=10,
                         help=f"parts per scene, 0..{MAX_COUNT}")  # fmt: skip
     parser.add_argument("--container", default="bin", choices=CONTAINERS)
@@ -84,6 +86,9 @@ def run(args: argparse.Namespace) -> int:
     if not all(MIN_SIDE <= side <= MAX_SIDE for side in resolution):
         raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
     parts = None if args.parts in ("", "default") else [p.strip() for p in args.parts.split(",") if p.strip()]
+    library = library_from_args(args)
+    if parts is not None:
+        library.subset(parts)  # an unknown name is refused (listing the library) before anything is written
     scene = SceneOptions(count=args.count, container=args.container, clutter=args.clutter, stack_layers=args.layers)
     out = Path(args.out)
     staging = out.parent / f".{out.name}.partial"
@@ -97,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         "renderer": args.renderer,
         "seed": args.seed,
     }
+    if library_paths(args):  # recorded only when given, so runs without it keep their earlier record
+        params["library"] = [p if p == "builtin" else str(Path(p).resolve()) for p in library_paths(args)]
     resume = args.resume and (staging / RESUME_FILE).is_file()
     if args.resume and not resume and (out / "parts.json").is_file() and not staging.exists():
         print(f"the dataset in {out} is already complete (parts.json); nothing to resume")
@@ -129,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
                 sensor=args.sensor,
                 resolution=resolution,
                 parts=parts,
+                library=list(library),
                 seed=args.seed,
                 progress=progress,
                 scene_options=scene,

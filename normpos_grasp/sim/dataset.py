@@ -141,14 +141,17 @@ def write_bop_dataset(
     split: str = "train",
     backend: str = "auto",
     resume: bool = False,
+    library: Sequence[Template] | None = None,
 ) -> Path:
     """Write `n_scenes` scenes of `n_frames` views each as a BOP dataset under `out_dir`; returns the split folder.
 
     Layout: models/ (obj_XXXXXX.ply in mm, models_info.json), {split}/{scene:06d}/ (rgb, depth, mask,
     mask_visib, scene_camera.json with cam_R_w2c/cam_t_w2c, scene_gt.json, scene_gt_info.json,
     scene_static.json with the static boxes in mm), camera.json and parts.json (obj_id -> part name).
-    parts: part names from the default library, Templates, or None for the whole default library; obj_id is
-    the 1-based position in that list. progress(frames_done, frames_total) is called after every frame.
+    library: the part library (default: `default_part_library()`); parts: names from it, Templates, or None for
+    the whole library. A part's obj_id is its template's `obj_id` (the built-in parts' are fixed, 1..8), so ids
+    survive into estimate results; a template without one gets the smallest id not taken, in order.
+    progress(frames_done, frames_total) is called after every frame.
 
     Each scene is written into `{split}/.{scene:06d}.partial` and renamed to its folder when complete, and
     parts.json (which readers require) is written last. resume: keep the scene folders an earlier, interrupted
@@ -163,8 +166,8 @@ def write_bop_dataset(
     if n_scenes < 1 or n_frames < 1:
         raise InputError(f"need at least one scene and one frame, got {n_scenes} scenes x {n_frames} frames")
     sensor_model = _as_sensor(sensor)
-    library = _resolve_parts(parts)
-    obj_ids = {t.name: i + 1 for i, t in enumerate(library)}
+    library = _resolve_parts(parts, library)
+    obj_ids = part_obj_ids(library)
     base_scene = scene_options if scene_options is not None else SceneOptions()
     base_scene = replace(base_scene, parts=tuple(t.name for t in library))
     cam_opts = camera_options if camera_options is not None else CameraOptions(sensor=_intrinsics_name(sensor_model))
@@ -265,17 +268,42 @@ def _intrinsics_name(sensor: SensorModel) -> str:
     return sensor.name if sensor.name in INTRINSICS else "d435"
 
 
-def _resolve_parts(parts: Sequence[str] | Sequence[Template] | None) -> list[Template]:
-    library = default_part_library()
+def part_obj_ids(parts: Sequence[Template]) -> dict[str, int]:
+    """name -> BOP obj_id: each template's own `obj_id`; those without one (-1) get the smallest free ids in order.
+
+    Raises InputError when two parts declare the same obj_id.
+    """
+    taken: dict[int, str] = {}
+    for t in parts:
+        if t.obj_id >= 0:
+            if t.obj_id in taken and taken[t.obj_id] != t.name:
+                raise InputError(f"parts '{taken[t.obj_id]}' and '{t.name}' both have obj_id {t.obj_id}")
+            taken[t.obj_id] = t.name
+    out = {t.name: t.obj_id for t in parts if t.obj_id >= 0}
+    free = 1
+    for t in parts:
+        if t.name not in out:
+            while free in taken:
+                free += 1
+            out[t.name] = free
+            taken[free] = t.name
+    return out
+
+
+def _resolve_parts(
+    parts: Sequence[str] | Sequence[Template] | None, library: Sequence[Template] | None = None
+) -> list[Template]:
+    lib = list(default_part_library() if library is None else library)
     if parts is None or len(parts) == 0:
-        return library
+        return lib
     if all(isinstance(p, Template) for p in parts):
         return list(parts)  # type: ignore[arg-type]
-    by_name = {t.name: t for t in library}
+    by_name = {t.name: t for t in lib}
     names = [str(p) for p in parts]
     missing = [n for n in names if n not in by_name]
     if missing:
-        raise InputError(f"unknown part names {missing}; the default library holds {sorted(by_name)}")
+        known = ", ".join(f"{t.name} ({t.obj_id})" for t in lib)
+        raise InputError(f"unknown part names {missing}; the library holds {known}")
     return [by_name[n] for n in dict.fromkeys(names)]
 
 

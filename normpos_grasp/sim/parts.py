@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -226,13 +227,19 @@ def _template(
     )
 
 
+#: BOP obj_id of each built-in part (fixed: synth, estimate and every dataset use these)
+BUILTIN_OBJ_IDS: dict[str, int] = {
+    name: i + 1 for i, name in enumerate(("cube", "box", "bar", "cylinder", "sphere", "plate", "bracket", "ring"))
+}
+
+
 def default_part_library() -> list[Template]:
-    """The eight default parts (metres): cube, box, bar, cylinder, sphere, plate, bracket, ring.
+    """The eight default parts (metres): cube, box, bar, cylinder, sphere, plate, bracket, ring (obj_id 1..8).
 
     Sizes: cube 40 mm; box 60x40x30; bar 100x25x25; cylinder d40 h70; sphere d45; plate 80x60x8;
     bracket L-profile 60 long, legs 40x40, 8 thick; ring OD 60, ID 36, h 15.
     """
-    return [
+    parts = [
         _box_part("cube", (0.04, 0.04, 0.04), "pom", "box"),
         _box_part("box", (0.06, 0.04, 0.03), "abs", "box"),
         _box_part("bar", (0.10, 0.025, 0.025), "aluminium", "box"),
@@ -242,6 +249,8 @@ def default_part_library() -> list[Template]:
         _bracket_part("bracket", 0.06, 0.04, 0.008, "aluminium"),
         _ring_part("ring", 0.06, 0.036, 0.015, "aluminium"),
     ]
+    # stable BOP object ids: a part keeps its id in every dataset, whichever parts a run draws
+    return [replace(t, obj_id=BUILTIN_OBJ_IDS[t.name]) for t in parts]
 
 
 def part_library_by_name(library: list[Template] | None = None) -> dict[str, Template]:

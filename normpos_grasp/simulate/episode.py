@@ -72,6 +72,8 @@ class SimulationConfig:
     clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
     gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
     resolution: (W, H) image size, pixels. physics: physics options.
+    library: part libraries (templates.library.resolve_library entries: folders or 'builtin'; empty = the built-in
+    parts); `parts` names parts of it.
     """
 
     cell_path: str
@@ -101,6 +103,7 @@ class SimulationConfig:
     gripper: str = ""
     resolution: tuple[int, int] = (640, 480)
     physics: PhysicsOptions = field(default_factory=PhysicsOptions)
+    library: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.segmenter not in SEGMENTERS:
@@ -246,11 +249,18 @@ def _segmenter(kind: str) -> Any:
 def _setup(config: SimulationConfig) -> _Setup:
     from normpos_grasp.cell.config import load_cell
     from normpos_grasp.sim.cameras import camera_intrinsics
-    from normpos_grasp.sim.parts import default_part_library
     from normpos_grasp.sim.sensor import sensor_preset
+    from normpos_grasp.templates.library import resolve_library
 
     path = Path(config.cell_path).resolve()
-    key = (str(path), path.stat().st_mtime_ns if path.exists() else 0, config.gripper, config.sensor, config.resolution)
+    key = (
+        str(path),
+        path.stat().st_mtime_ns if path.exists() else 0,
+        config.gripper,
+        config.sensor,
+        config.resolution,
+        config.library,
+    )
     hit = _SETUPS.get(key)
     if hit is not None:
         return hit
@@ -258,7 +268,7 @@ def _setup(config: SimulationConfig) -> _Setup:
     _world_from_bin(cell)
     if cell.world_from_camera is None:
         raise InputError(f"cell {cell.name!r} has no camera pose; simulate renders through the cell's camera")
-    library = tuple(default_part_library())
+    library = tuple(resolve_library(config.library))
     camera = camera_intrinsics(config.sensor, config.resolution).with_extrinsics(cell.world_from_camera)
     setup = _Setup(
         cell=cell,

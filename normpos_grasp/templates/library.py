@@ -23,8 +23,8 @@ from __future__ import annotations
 import json
 import logging
 import struct
-from collections.abc import Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -92,7 +92,87 @@ class TemplateLibrary:
         for t in self.templates:
             if t.obj_id == int(obj_id):
                 return t
-        raise TemplateError(f"no template with BOP obj_id {obj_id}; known: {[t.obj_id for t in self.templates]}")
+        raise TemplateError(f"no template with BOP obj_id {obj_id}; the library holds {self.describe()}")
+
+    def label_of_obj_id(self, obj_id: int) -> str | None:
+        """The label of the template with BOP `obj_id`, or None when the library has no such object."""
+        for t in self.templates:
+            if t.obj_id == int(obj_id):
+                return t.label
+        return None
+
+    def describe(self) -> str:
+        """One line naming every template with its obj_id ('cube (1), box (2), ...')."""
+        return ", ".join(f"{t.name} ({t.obj_id})" for t in self.templates)
+
+    def subset(self, names: Sequence[str]) -> TemplateLibrary:
+        """The templates called `names` (order kept, repeats dropped); TemplateError listing what exists otherwise."""
+        wanted = list(dict.fromkeys(str(n) for n in names))
+        missing = [n for n in wanted if n not in self.names]
+        if missing:
+            raise TemplateError(f"unknown part names {missing}; the library holds {self.describe()}")
+        by_name = {t.name: t for t in self.templates}
+        reports = {n: self.reports[n] for n in wanted if n in self.reports}
+        return TemplateLibrary(tuple(by_name[n] for n in wanted), reports, self.root)
+
+
+# -- one library for every command -----------------------------------------------------------------
+
+#: the name that stands for the built-in parts (sim.parts.default_part_library) in a list of libraries
+BUILTIN = "builtin"
+
+
+def builtin_library() -> TemplateLibrary:
+    """The eight built-in procedural parts (obj_id 1..8), as a TemplateLibrary."""
+    from normpos_grasp.sim.parts import default_part_library
+
+    return TemplateLibrary(tuple(default_part_library()), {}, BUILTIN)
+
+
+def resolve_library(paths: Sequence[str | Path] | None = None, *, repair: bool = True) -> TemplateLibrary:
+    """The one part library of a command: the union of `paths`, in order (the built-in parts when empty).
+
+    Each entry is a folder of template folders, one template folder, a BOP models folder, or `BUILTIN`
+    ('builtin', the eight procedural parts). Names must be unique across the entries, and BOP obj_ids too;
+    templates that declare no obj_id get the smallest ids above every declared one, in order, so the same list of
+    libraries always gives the same ids (`teach` writes an explicit id into every template it makes).
+
+    Raises:
+        TemplateError: an entry holds no template, two entries share a name or an obj_id (both sources named).
+    """
+    entries = [str(p) for p in (paths or ())] or [BUILTIN]
+    parts: list[Template] = []
+    reports: dict[str, MeshReport] = {}
+    origin: dict[str, str] = {}
+    for entry in dict.fromkeys(entries):
+        lib = builtin_library() if entry == BUILTIN else load_library(entry, repair=repair)
+        for t in lib:
+            if t.name in origin:
+                raise TemplateError(
+                    f"part name '{t.name}' is in both {origin[t.name]} and {entry}; rename one (template.yaml 'name:')"
+                )
+            origin[t.name] = entry
+            parts.append(t)
+        reports.update(lib.reports)
+    ids: dict[int, str] = {}
+    for t in parts:
+        if t.obj_id >= 0:
+            if t.obj_id in ids:
+                raise TemplateError(
+                    f"obj_id {t.obj_id} is used by '{ids[t.obj_id]}' ({origin[ids[t.obj_id]]}) and '{t.name}' "
+                    f"({origin[t.name]}); give one of them another 'obj_id:' in its template.yaml"
+                )
+            ids[t.obj_id] = t.name
+    next_id = max(ids, default=0) + 1
+    out = []
+    for t in parts:
+        if t.obj_id < 0:
+            t = replace(t, obj_id=next_id)
+            logger.info("template '%s' declares no obj_id: it gets %d in this library", t.name, next_id)
+            next_id += 1
+        out.append(t)
+    root = entries[0] if len(entries) == 1 else ";".join(entries)
+    return TemplateLibrary(tuple(out), reports, root)
 
 
 # -- loading ---------------------------------------------------------------------------------------
