@@ -14,7 +14,7 @@ import abc
 import logging
 import time
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -26,6 +26,8 @@ from normpos_grasp.errors import (
     InputError,
     ProtectiveStop,
     SafetyViolation,
+    TerminationRequested,
+    ZoneIntrusion,
 )
 from normpos_grasp.typing import ArrayLike, FloatArray
 
@@ -45,7 +47,8 @@ class ArmState:
     """One snapshot of the arm. q, qd: (6,) rad, rad/s. base_from_tcp: (4, 4). timestamp: controller clock, s.
 
     robot_mode (7 running), safety_mode (1 normal, 3 protective stop, 7 e-stop), runtime_state (2 playing).
-    digital_out, digital_in: standard bits 0-7, configurable 8-15, tool 16-17.
+    digital_out, digital_in: standard bits 0-7, configurable 8-15, tool 16-17. analog_in: standard analog inputs 0
+    and 1 (V or A, as each input's domain is set on the controller).
     """
 
     q: FloatArray
@@ -60,6 +63,7 @@ class ArmState:
     digital_out: int
     digital_in: int
     received_at: float  # time.monotonic() of the read, s
+    analog_in: tuple[float, float] = (0.0, 0.0)
 
     @property
     def protective_stopped(self) -> bool:
@@ -111,25 +115,35 @@ class GripperIO:
 class DriverOptions:
     """Timeouts and defaults. All times in seconds.
 
-    connect_timeout_s: connecting. stale_state_s: no fresh state for this long during a move = connection lost.
-    move_margin_s, move_factor: a move times out after move_factor * expected duration + move_margin_s.
-    poll_s: monitor period during moves. arrive_tol_rad: a move is complete when every joint is this close.
-    stop_decel: joint deceleration for stops, rad/s^2. halt_decel: joint deceleration of the stop issued when a
-    motion call is left by an interrupt (SIGINT/SIGTERM) or an exception, rad/s^2 (10: UR's protective-stop ramp
-    as the loopback controller models it; 0.8 rad/s stops in 80 ms). stream_period_s: servo streaming period.
-    watchdog_s: controller-side watchdog while streaming (the program stops if no command arrives for this long).
+    connect_timeout_s: connecting. stale_state_s: the stall watchdog: no new controller timestamp for this long
+    during a move = connection lost (the arm is stopped over the dashboard). 0.15 s is 75 packets of the 500 Hz
+    RTDE stream; the age is taken where the stream is read (the ur_rtde client's process), so a descheduled caller
+    does not trip it. move_margin_s, move_factor: a move times out after move_factor * expected duration +
+    move_margin_s. poll_s: monitor period during moves. arrive_tol_rad: a move is complete when every joint is this
+    close. stop_decel: joint deceleration for stops, rad/s^2. halt_decel, halt_time_s, halt_decel_max: the stop
+    issued when a motion call is left by an interrupt (SIGINT/SIGTERM) or an exception decelerates the joints at
+    max(halt_decel, peak joint speed / halt_time_s) rad/s^2, at most halt_decel_max (ur_rtde's joint acceleration
+    ceiling): the arm rests within halt_time_s (UR's e-Series stopping time, 50 ms) up to 2 rad/s.
+    stream_period_s: servo streaming period. watchdog_s: controller-side watchdog while streaming (the program
+    stops if no command arrives for this long) and the most a stream tick may be late.
     """
 
     connect_timeout_s: float = 10.0
-    stale_state_s: float = 0.5
+    stale_state_s: float = 0.15
     move_margin_s: float = 5.0
     move_factor: float = 2.0
     poll_s: float = 0.004
     arrive_tol_rad: float = 1e-4
     stop_decel: float = 3.0
     halt_decel: float = 10.0
+    halt_time_s: float = 0.05
+    halt_decel_max: float = 40.0
     stream_period_s: float = 0.008
-    watchdog_s: float = 0.25
+    watchdog_s: float = 0.2
+
+    def halt_decel_for(self, peak_speed: float) -> float:
+        """Joint deceleration (rad/s^2) of an interrupt's stop for a leading joint at `peak_speed` rad/s."""
+        return float(min(self.halt_decel_max, max(self.halt_decel, 1.1 * abs(peak_speed) / self.halt_time_s)))
 
 
 @runtime_checkable
@@ -189,6 +203,10 @@ class GuardedDriver(abc.ABC):
         self.options = options or DriverOptions()
         self._fault: DriverFault | None = None
         self.commands_sent = 0
+        # (reason, protective, detail) set by another thread (`request_stop`); honoured at the next state poll
+        self._stop_request: tuple[str, bool, Any] | None = None
+        self.stop_sent_at = -1.0  # time.monotonic() when the last requested stop was sent, s
+        self._peak_qd = 0.0  # rad/s: the leading joint's speed in the last state checked (sizes an interrupt's stop)
 
     # ------------------------------------------------------------------ backend primitives (override)
     @abc.abstractmethod
@@ -243,6 +261,11 @@ class GuardedDriver(abc.ABC):
         """Make the backend ready for motion again after an unlocked stop (e.g. re-upload the control script)."""
         ...
 
+    def _backend_protective_stop(self) -> None:
+        """Put the controller into a protective stop (a requested stop of the `protective` kind); backends without
+        one stop with `halt_decel`."""
+        self._backend_stop(self.options.halt_decel)
+
     # ------------------------------------------------------------------ public API
     @property
     def fault(self) -> DriverFault | None:
@@ -258,7 +281,7 @@ class GuardedDriver(abc.ABC):
         try:
             if self._backend_connected() and float(np.max(np.abs(self._backend_state().qd))) > 1e-4:
                 log.warning("disconnect while the arm moves: stopping it first")
-                self._backend_stop(self.options.halt_decel)
+                self._backend_stop(self.options.halt_decel_for(self._peak_qd))
         except (OSError, RuntimeError, DriverFault) as exc:
             log.warning("stop before disconnect failed (%s); stopping the program another way", exc)
             self._halt_fallback()
@@ -280,12 +303,13 @@ class GuardedDriver(abc.ABC):
         now with `halt_decel`, before the exception travels on, and latches a fault so nothing further is sent."""
         if isinstance(exc, DriverFault) and self._fault is not None:
             return
-        reason = "SIGTERM" if type(exc).__name__ == "TerminationRequested" else type(exc).__name__
+        reason = "SIGTERM" if isinstance(exc, TerminationRequested) else type(exc).__name__
         try:
             if not self._backend_connected():
                 raise ConnectionLost("not connected")
-            self._backend_stop(self.options.halt_decel)
-            log.info("%s left by %s: arm stopped", what, reason)
+            decel = self.options.halt_decel_for(self._peak_qd)
+            self._backend_stop(decel)
+            log.info("%s left by %s: arm stopped (%.1f rad/s^2)", what, reason, decel)
         except (OSError, RuntimeError, DriverFault) as err:
             log.warning("stop after %s in %s failed (%s); stopping the program another way", reason, what, err)
             self._halt_fallback()
@@ -316,6 +340,7 @@ class GuardedDriver(abc.ABC):
             )
         self._backend_reset_faults()
         self._fault = None
+        self._stop_request = None
 
     def _fresh_state(self, after: float) -> ArmState:
         """The first state received after `after` (time.monotonic()); ConnectionLost if none within stale_state_s."""
@@ -335,6 +360,36 @@ class GuardedDriver(abc.ABC):
         """Decelerate to rest (allowed even when faulted)."""
         if self._backend_connected():
             self._backend_stop(self.options.stop_decel)
+
+    def request_stop(self, reason: str, protective: bool = False, detail: Any = None) -> None:
+        """Ask, from another thread (the zone watch), for the arm to stop; returns at once.
+
+        The motion call in progress stops the arm at its next state poll (within `poll_s` or `stream_period_s`):
+        stopJ with `stop_decel`, or a protective stop when `protective`; it then raises `ZoneIntrusion` (latched:
+        nothing further is sent until `resume()`, which clears the request). Without a motion in progress the next
+        motion or gripper call raises it before sending anything. `detail` (a mapping) travels in the error."""
+        self._stop_request = (str(reason), bool(protective), detail)
+
+    def _honour_stop_request(self, stop: bool) -> None:
+        request = self._stop_request
+        if request is None:
+            return
+        reason, protective, detail = request
+        sent = -1.0
+        if stop and self._fault is None:
+            sent = time.monotonic()
+            try:
+                if protective:
+                    self._backend_protective_stop()
+                else:
+                    self._backend_stop(self.options.stop_decel)
+            except (OSError, RuntimeError, DriverFault) as exc:
+                log.warning("requested stop failed (%s); stopping the program another way", exc)
+                self._halt_fallback()
+            self.stop_sent_at = sent
+        info = dict(detail) if isinstance(detail, dict) else {"detail": detail}
+        info.update({"stop_sent_at": sent, "stop_kind": "protective" if protective else "stop"})
+        raise self._latch(ZoneIntrusion(f"arm stopped on request: {reason}", info))
 
     def move_joints(self, waypoints: ArrayLike, speed: float, accel: float, timeout_s: float | None = None) -> ArmState:
         self._require_ready()
@@ -492,6 +547,8 @@ class GuardedDriver(abc.ABC):
 
     # ------------------------------------------------------------------ monitoring
     def _require_ready(self) -> None:
+        if self._fault is None and self._stop_request is not None:
+            self._honour_stop_request(stop=False)
         if self._fault is not None:
             raise DriverFault(
                 f"driver halted by {type(self._fault).__name__}: {self._fault}; nothing was sent. "
@@ -504,7 +561,11 @@ class GuardedDriver(abc.ABC):
         return fault
 
     def _check_state(self, st: ArmState, during: str, stop: bool) -> None:
-        """Raise (and latch) the typed fault the state shows; stop the arm first when `stop`."""
+        """Raise (and latch) the typed fault the state shows; stop the arm first when `stop`. A pending
+        `request_stop` is honoured first."""
+        if self._stop_request is not None and self._fault is None:
+            self._honour_stop_request(stop)
+        self._peak_qd = float(np.max(np.abs(st.qd))) if st.qd.shape == (6,) else self._peak_qd
         fault: DriverFault | None = None
         if st.emergency_stopped:
             fault = EmergencyStop(f"emergency stop during {during} (safety_mode {st.safety_mode})")

@@ -13,6 +13,7 @@ import logging
 import os
 import signal
 import sys
+import time
 from multiprocessing.connection import Connection
 
 from normpos_grasp.errors import DriverFault
@@ -63,7 +64,8 @@ def serve(
                 drv._backend_reset_faults()
                 value = None
             elif name == "state":
-                value = (drv._backend_state(), drv._backend_connected())
+                st = drv._backend_state()  # the stream's age is taken here, where it is read (see the caller)
+                value = (st, drv._backend_connected(), time.monotonic() - st.received_at)
             else:
                 value = getattr(drv, "_backend_" + name)(*args)
             conn.send((seq, "ok", value))

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,7 @@ _CALLS = frozenset(
         "servo_begin",
         "servo_end",
         "stop",
+        "protective_stop",
         "set_output",
         "reset_faults",
     }
@@ -248,10 +250,13 @@ class SupervisedRtdeDriver(GuardedDriver):
         )
 
     def _backend_state(self) -> ArmState:
-        st, connected = self._call("state")
+        st, connected, age_s = self._call("state")
         self._child_connected = bool(connected)
         assert isinstance(st, ArmState)
-        return st
+        # The stall watchdog (stale_state_s) judges the stream's age where it is read, in the child: the age is
+        # carried over and re-based on this process's clock, so time this process spent descheduled between the
+        # reply and the check does not count as a stalled controller.
+        return replace(st, received_at=time.monotonic() - float(age_s))
 
     def _backend_link_lost(self) -> str | None:
         note = dashboard_stop(self.host)
@@ -286,6 +291,9 @@ class SupervisedRtdeDriver(GuardedDriver):
         # stopJ waits until the arm rests: at most (rated speed / decel) s
         self._call("stop", decel, timeout_s=3.5 / max(decel, 0.5) + self.call_timeout_s + 1.0)
         # (program stops over the dashboard are the fallback when this fails: GuardedDriver._halt_fallback)
+
+    def _backend_protective_stop(self) -> None:
+        self._call("protective_stop", timeout_s=self.call_timeout_s + 1.0)
 
     def _backend_set_output(self, index: int, level: bool, tool: bool) -> None:
         self._call("set_output", index, level, tool, timeout_s=self.call_timeout_s + 1.5)

@@ -81,7 +81,8 @@ class EmulatorOptions:
     q_home: initial joints (rad). control_version: (major, minor, bugfix, build) reported over RTDE.
     rt_priority: 0 = normal scheduling; 1-99 = SCHED_FIFO for the control loop thread (like a real controller;
     use on a loaded machine to keep the 2 ms period, if the process may). serial: the dashboard's
-    `get serial number` answer.
+    `get serial number` answer. robotiq_model: the gripper behind the Robotiq URCap socket ('2F-85', '2F-140'; ''
+    serves no such socket, as a controller without the URCap). robotiq_port: its TCP port (63352 on a controller).
     """
 
     model: str = "ur5e"
@@ -92,6 +93,8 @@ class EmulatorOptions:
     control_version: tuple[int, int, int, int] = (5, 15, 0, 0)
     rt_priority: int = 0  # >0: run the 500 Hz loop under SCHED_FIFO at this priority (Linux, needs CAP_SYS_NICE)
     serial: str = "20265500001"
+    robotiq_model: str = "2F-85"
+    robotiq_port: int = 63352
 
 
 @dataclass
@@ -131,6 +134,7 @@ class EmulatedController:
         self.out_double = [0.0] * 48
         self.digital_out = 0  # standard bits 0-7, configurable 8-15, tool 16-17
         self.digital_in = 0
+        self.analog_in = [0.0, 0.0]  # standard analog inputs 0 and 1 (V or A, as the input's domain is set)
         self.speed_slider = 1.0
         self.payload = 0.0
         self.protective_stop_time = -1e9
@@ -180,6 +184,8 @@ class EmulatedController:
             "safety_status_bits": self.safety_bits,
             "actual_digital_output_bits": self.digital_out,
             "actual_digital_input_bits": self.digital_in,
+            "standard_analog_input0": self.analog_in[0],
+            "standard_analog_input1": self.analog_in[1],
             "speed_scaling": self.speed_slider,
             "target_speed_fraction": self.speed_slider,
             "payload": self.payload,
@@ -297,6 +303,7 @@ class EmulatedController:
             self.safety_mode = SAFETY_PROTECTIVE_STOP
             self.safety_bits |= 1 << SAFETY_BIT_PROTECTIVE
             self.protective_stop_time = time.monotonic()
+            self._stop_arrived("protectiveStop")
             self.arm.stop(PROTECTIVE_STOP_DECEL)
             self.program = None
             self.events.append(f"protective stop: {reason}")
@@ -306,6 +313,7 @@ class EmulatedController:
         with self.lock:
             self.safety_mode = SAFETY_ROBOT_EMERGENCY_STOP
             self.safety_bits |= 1 << SAFETY_BIT_EMERGENCY
+            self._stop_arrived("emergencyStop")
             self.arm.stop(PROTECTIVE_STOP_DECEL * 2)
             self.program = None
             self.events.append("emergency stop")
@@ -406,7 +414,7 @@ class EmulatedController:
         if cmd in (1, 2, 3, 4, 9, 11, 45):
             self.motion_cmds += 1
             self.motion_times.append(time.monotonic())
-        elif cmd in (15, 16, 33, 34):
+        elif cmd in (15, 16, 31, 33, 34):
             self._stop_arrived(CMD_NAMES[cmd])
         if cmd in (1, 2, 3, 4):
             target = self._d(prog, 0, 6)
