@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -28,6 +28,9 @@ from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.records.template import Template
 from normpos_grasp.typing import FloatArray
+
+if TYPE_CHECKING:
+    from normpos_grasp.replay.bundle import BundleRecorder
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +59,8 @@ class PickRecord:
 
     check: the source's verdict on the pick; timings_ms: per stage, milliseconds (perception, plan, execute, check);
     fault: the fault's type and message for 'driver_fault' (the arm was stopped and nothing further is sent until
-    the driver is resumed) and 'unsafe_plan'.
+    the driver is resumed) and 'unsafe_plan'. captured: the frame as the source gave it (before any depth-bias
+    correction; `result.frame` is the corrected one); start_q: (6,) rad the turn planned from (replay bundles).
     """
 
     index: int
@@ -67,6 +71,8 @@ class PickRecord:
     execution: ExecutionReport | None
     timings_ms: dict[str, float] = field(default_factory=dict)
     fault: str = ""
+    captured: RGBDFrame | None = None
+    start_q: FloatArray | None = None
 
 
 class SyntheticBinSource:
@@ -275,6 +281,7 @@ def run_cell_loop(
     options: PipelineOptions | None = None,
     on_pick: Callable[[PickRecord], None] | None = None,
     on_plan: Callable[[FrameResult], None] | None = None,
+    bundles: BundleRecorder | None = None,
 ) -> list[PickRecord]:
     """Run picks until the source is exhausted, nothing is feasible, the driver faults, or `max_picks` turns.
 
@@ -286,7 +293,8 @@ def run_cell_loop(
     sends nothing further until it is resumed); a plan the safety limits refuse ends it with 'unsafe_plan'; a grip
     the gripper's detect input does not confirm ends it with 'pick_failed' (check 'grip_not_detected'). An interrupt
     (KeyboardInterrupt, TerminationRequested) or any other exception leaves through the driver's motion call, which
-    stops the arm first.
+    stops the arm first. `bundles` (normpos_grasp.replay.BundleRecorder) saves a replay bundle of every record
+    (docs/replay.md), after `on_pick`.
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
@@ -296,15 +304,19 @@ def run_cell_loop(
     records: list[PickRecord] = []
 
     def emit(record: PickRecord) -> None:
+        record = replace(record, captured=frame, start_q=cycle_q)  # this turn's frame and start joints
         records.append(record)
         if on_pick is not None:
             on_pick(record)
+        if bundles is not None:
+            bundles.save(record, cell, templates, options or PipelineOptions())
 
     for index in range(max_picks):
         if source.exhausted:
             break
         t0 = time.perf_counter()
         frame = source.capture()
+        cycle_q = np.array(start_q, dtype=np.float64)
         t_capture = (time.perf_counter() - t0) * 1e3
         result = process_frame(frame, segmenter, templates, cell, options, start_q)
         timings = {"capture": t_capture, **result.timings_ms}

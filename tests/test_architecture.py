@@ -52,6 +52,7 @@ LAYERS: tuple[str, ...] = (
     "pipeline",
     "realsense_source",
     "report",
+    "replay",  # replay bundles: one loop cycle saved, re-run offline and compared
     "simulate",
     "loop",
     "training",
