@@ -53,6 +53,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "demo",
     "view",
     "simulate",
+    "replay",
 )
 
 

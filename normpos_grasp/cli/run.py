@@ -77,6 +77,13 @@ def register(subparsers: Any) -> None:
         help="folder for plan_NN.json, run.json and the current frame's "
         "scene.glb (watch it with `normpos-grasp view --report OUT`)",
     )
+    p.add_argument(
+        "--bundles",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="save a replay bundle of every turn under DIR (`normpos-grasp replay BUNDLE`; docs/replay.md)",
+    )
     p.add_argument("--linger", type=float, default=0.0, help="with --view: keep serving this many seconds at the end")
     p.set_defaults(handler=run)
 
@@ -179,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
     limits = SafetyLimits.from_cell(cell)
     driver: Any = None
     view: Any = None
+    bundles: Any = None
     out: Path | None = args.out
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -244,6 +252,12 @@ def run(args: argparse.Namespace) -> int:
                             out / "run.json", _run_summary(cell.name, args, source_kind, mode, done_so_far, t_start)
                         )
 
+                if args.bundles is not None:
+                    from normpos_grasp.replay.bundle import BundleRecorder
+
+                    bundles = BundleRecorder(
+                        args.bundles, segmenter, library_sources=_library_sources(args, cell, library), driver=driver
+                    )
                 records = run_cell_loop(
                     cell,
                     source,
@@ -254,10 +268,13 @@ def run(args: argparse.Namespace) -> int:
                     max_picks=args.max_picks,
                     on_pick=on_pick,
                     on_plan=on_plan,
+                    bundles=bundles,
                 )
                 if view is not None and args.linger > 0:
                     time.sleep(args.linger)
             finally:
+                if bundles is not None:
+                    bundles.close()
                 if view is not None:
                     view.close()
                 if driver is not None:
@@ -285,11 +302,29 @@ def run(args: argparse.Namespace) -> int:
         f"{mode}: {done} of {len(records)} turns planned{' and picked' if args.execute else ''}; "
         f"{summary['wall_time_s']} s"
     )
+    if bundles is not None:
+        print(f"{len(bundles.saved)} replay bundles in {args.bundles} (normpos-grasp replay BUNDLE)")
     if any(s in ("driver_fault", "unsafe_plan") for s in statuses):
         return 2
     if done == 0 or "pick_failed" in statuses:
         return 1
     return 0
+
+
+def _library_sources(args: argparse.Namespace, cell: Any, library: Any) -> tuple[str, ...]:
+    """The `resolve_library` entries the run's templates come from, for replay bundles: --library, else none for
+    the built-in parts, else the cell's templates."""
+    from normpos_grasp.cli.args import library_paths
+    from normpos_grasp.replay.bundle import template_sha256
+    from normpos_grasp.templates.library import builtin_library
+
+    paths = library_paths(args)
+    if paths:
+        return paths
+    builtin = {t.name: template_sha256(t) for t in builtin_library()}
+    if all(builtin.get(t.name) == template_sha256(t) for t in library):
+        return ()
+    return (str(cell.templates_path),) if cell.templates_path is not None else ()
 
 
 def _run_summary(

@@ -67,8 +67,6 @@ BUNDLE_FORMAT = "normpos-grasp/replay-bundle@1"
 MANIFEST = "manifest.json"
 #: packages whose versions a manifest records (absent ones as null)
 RECORDED_PACKAGES = ("numpy", "scipy", "trimesh", "opencv-python-headless", "onnxruntime", "pin", "ruckig", "mujoco")
-#: the part library's marker in a bundle's library record (else the folder `templates.library.load_library` reads)
-PART_LIBRARY = "normpos_grasp.sim.parts"
 _REQUIRED = ("cycle.json", "options.json", "cell.yaml", "camera.json", "frame.npz", "instances.json", "fits.json")
 
 
@@ -101,8 +99,9 @@ class PickRecord(Protocol):
 class Bundle:
     """A bundle read back. frame: as captured (the replay's input); instances: the recorded masks; fits: fits.json
     entries; plan: the recorded plan JSON (None when the cycle had none); start_q: (6,) rad the cycle planned from;
-    library: {'source': PART_LIBRARY or a folder, 'templates': [{'name', 'sha256'}]}; segmenter: {'kind': 'model' |
-    'depth' | 'recorded', ...}; missing_options: option names the bundle lacked (defaults used)."""
+    library: {'sources': the `templates.library.resolve_library` entries, 'templates': [{'name', 'sha256'}]};
+    segmenter: {'kind': 'model' | 'depth' | 'recorded', ...}; missing_options: option names the bundle lacked
+    (defaults used)."""
 
     path: Path
     manifest: dict[str, Any]
@@ -161,39 +160,35 @@ def segmenter_record(segmenter: Segmenter) -> dict[str, Any]:
     return {"kind": "recorded", "type": type(segmenter).__name__}
 
 
-def library_record(templates: Sequence[Template], source: str | Path | None) -> dict[str, Any]:
-    """The library record of a bundle. source: the folder the templates were loaded from, or None for the
-    packaged part library (then every template must be one of its parts, unchanged). Raises InputError."""
-    entries = [{"name": t.name, "sha256": template_sha256(t)} for t in templates]
-    if source is None:
-        from normpos_grasp.sim.parts import default_part_library
+def library_record(templates: Sequence[Template], sources: Sequence[str | Path] = ()) -> dict[str, Any]:
+    """The library record of a bundle. sources: the `templates.library.resolve_library` entries the templates
+    come from (folders, 'builtin'); empty for the built-in parts, which every template must then be, unchanged.
+    Raises InputError."""
+    from normpos_grasp.templates.library import BUILTIN, builtin_library
 
-        parts = {t.name: template_sha256(t) for t in default_part_library()}
+    entries = [{"name": t.name, "sha256": template_sha256(t)} for t in templates]
+    if not sources:
+        parts = {t.name: template_sha256(t) for t in builtin_library()}
         foreign = [e["name"] for e in entries if parts.get(e["name"]) != e["sha256"]]
         if foreign:
             raise InputError(
-                f"templates {foreign} are not the packaged parts: tell the bundle recorder the library folder "
-                "they come from (library_source)"
+                f"templates {foreign} are not the built-in parts: tell the bundle recorder the libraries they come "
+                "from (library_sources)"
             )
-        return {"source": PART_LIBRARY, "templates": entries}
-    return {"source": str(Path(source).resolve()), "templates": entries}
+    resolved = [s if str(s) == BUILTIN else str(Path(s).resolve()) for s in sources] or [BUILTIN]
+    return {"sources": [str(s) for s in resolved], "templates": entries}
 
 
-def load_library_record(record: dict[str, Any], override: str | Path | None = None) -> list[Template]:
-    """The templates of a library record, in recorded order, from its source (or `override`)."""
-    from normpos_grasp.templates.library import load_library
+def load_library_record(record: dict[str, Any], override: Sequence[str | Path] = ()) -> list[Template]:
+    """The templates of a library record, in recorded order, from its sources (or the `override` entries)."""
+    from normpos_grasp.templates.library import resolve_library
 
-    source = str(override) if override is not None else str(record.get("source", ""))
-    if source == PART_LIBRARY:
-        from normpos_grasp.sim.parts import default_part_library
-
-        available = {t.name: t for t in default_part_library()}
-    else:
-        available = {t.name: t for t in load_library(source)}
+    sources = [str(p) for p in override] or [str(p) for p in record.get("sources", [])]
+    available = {t.name: t for t in resolve_library(sources)}
     names = [str(e["name"]) for e in record.get("templates", [])]
     lost = [n for n in names if n not in available]
     if lost:
-        raise InputError(f"the template library {source} lacks the bundle's templates {lost}")
+        raise InputError(f"the template library {';'.join(sources)} lacks the bundle's templates {lost}")
     return [available[n] for n in names]
 
 
@@ -314,8 +309,9 @@ def _write_contents(
         "trace": trace,
     }
     put("execution.json", _json_bytes(execution))
-    # the frame as a BOP scene: the masks with the accepted fits as poses (obj_id = library index + 1)
-    index_of = {t.name: k + 1 for k, t in enumerate(templates)}
+    # the frame as a BOP scene: the masks with the accepted fits as poses (the template's obj_id, else its
+    # 1-based place in the library)
+    index_of = {t.name: (t.obj_id if t.obj_id > 0 else k + 1) for k, t in enumerate(templates)}
     accepted = {f.instance_id: f for f in result.fits if f.accepted}
     camera_from_world = frame.camera.camera_from_world if frame.camera.world_from_camera is not None else None
     gts = []
@@ -379,15 +375,16 @@ class BundleRecorder:
     `<start UTC>-cycle<NNN>`; with a driver, samples `driver.state()` every `trace_period_s` seconds in a background
     thread and gives each bundle the samples since the previous one (the cycle's state trace).
 
-    segmenter: the segmenter of the loop (recorded by `segmenter_record`); library_source: the folder the loop's
-    templates come from, None for the packaged part library. Use as a context manager (stops the sampler)."""
+    segmenter: the segmenter of the loop (recorded by `segmenter_record`); library_sources: the
+    `templates.library.resolve_library` entries the loop's templates come from (empty: the built-in parts).
+    Use as a context manager (stops the sampler)."""
 
     def __init__(
         self,
         directory: str | Path,
         segmenter: Segmenter,
         *,
-        library_source: str | Path | None = None,
+        library_sources: Sequence[str | Path] = (),
         driver: ArmDriver | None = None,
         trace_period_s: float = 0.1,
     ) -> None:
@@ -397,7 +394,7 @@ class BundleRecorder:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.run_id = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%SZ")
         self.segmenter = segmenter_record(segmenter)
-        self.library_source = library_source
+        self.library_sources = tuple(library_sources)
         self.saved: list[Path] = []
         self.save_times_s: list[float] = []
         self._library: dict[str, Any] | None = None
@@ -432,7 +429,7 @@ class BundleRecorder:
         t0 = time.perf_counter()
         key = tuple(id(t) for t in templates)
         if self._library is None or key != self._library_key:
-            self._library = library_record(templates, self.library_source)
+            self._library = library_record(templates, self.library_sources)
             self._library_key = key
         with self._lock:
             samples, self._samples = self._samples, []
@@ -611,7 +608,6 @@ __all__ = [
     "BUNDLE_FORMAT",
     "Bundle",
     "BundleRecorder",
-    "PART_LIBRARY",
     "fit_entries",
     "library_record",
     "list_bundles",

@@ -12,6 +12,7 @@ runs by nature).
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,19 +29,22 @@ from normpos_grasp.replay.bundle import Bundle, fit_entries, load_bundle, load_l
 
 @dataclass(frozen=True)
 class Row:
-    """One line of the summary table: what, recorded, replayed, the difference, and whether it is the same."""
+    """One line of the summary table: what, recorded, replayed, the difference, whether it is the same, and whether
+    it is an input of the replay ('input': templates, options, frame, model) or a result ('result')."""
 
     item: str
     recorded: str
     replayed: str
     difference: str
     same: bool
+    kind: str = "result"
 
 
 @dataclass(frozen=True, eq=False)
 class ReplayReport:
-    """Outcome of `replay_bundle`. identical: every row the same (the plan JSON byte for byte without timing_ms);
-    rows: the summary table; plan_json: the replayed plan (None when none); result: the replayed FrameResult."""
+    """Outcome of `replay_bundle`. identical: every result row the same (masks, fits, the plan JSON byte for byte
+    without timing_ms; a changed input with the same results is still identical); rows: the summary table;
+    plan_json: the replayed plan (None when none); result: the replayed FrameResult."""
 
     bundle: Path
     rows: tuple[Row, ...]
@@ -50,12 +54,16 @@ class ReplayReport:
 
     @property
     def identical(self) -> bool:
-        return all(r.same for r in self.rows)
+        return all(r.same for r in self.rows if r.kind == "result")
 
     def table(self) -> str:
-        """The rows as an aligned text table (one header line, one line per row)."""
+        """The rows as an aligned text table (one header line, one line per row); first column '=' same, '!' a
+        result that differs, '~' an input that was changed."""
         head = ("", "item", "recorded", "replayed", "difference")
-        lines = [head] + [("=" if r.same else "!", r.item, r.recorded, r.replayed, r.difference) for r in self.rows]
+        marks = [("=" if r.same else "!" if r.kind == "result" else "~") for r in self.rows]
+        lines = [head] + [
+            (m, r.item, r.recorded, r.replayed, r.difference) for m, r in zip(marks, self.rows, strict=True)
+        ]
         widths = [max(len(line[k]) for line in lines) for k in range(4)]
         return "\n".join(
             "  ".join(cell.ljust(widths[k]) for k, cell in enumerate(line[:4])) + "  " + line[4] for line in lines
@@ -112,14 +120,14 @@ def replay_bundle(
     options: PipelineOptions | None = None,
     frame: RGBDFrame | None = None,
     library: list[Template] | None = None,
-    models: str | Path | None = None,
+    models: Sequence[str | Path] = (),
     segmenter: Segmenter | None = None,
 ) -> ReplayReport:
     """Re-run the bundle's cycle and compare it with the recording.
 
     options / frame / library / segmenter: replace the recorded ones (what-if runs, or a test that perturbs an
-    input); models: load the templates from this folder instead of the recorded source. Raises BundleError for a
-    bundle that is not one, InputError when its templates cannot be found."""
+    input); models: load the templates from these `resolve_library` entries instead of the recorded ones.
+    Raises BundleError for a bundle that is not one, InputError when its templates cannot be found."""
     b = bundle if isinstance(bundle, Bundle) else load_bundle(bundle)
     notes: list[str] = [f"option {name} not in the bundle: today's default used" for name in b.missing_options]
     templates = library if library is not None else load_library_record(b.library, models)
@@ -160,10 +168,11 @@ def _template_rows(b: Bundle, templates: list[Template]) -> list[Row]:
     return [
         Row(
             "templates",
-            f"{len(recorded)} ({b.library.get('source', '?')})",
+            f"{len(recorded)} ({';'.join(b.library.get('sources', []))})",
             f"{len(now)}",
             "same SHA-256" if same else "changed: " + ", ".join(changed),
             same,
+            "input",
         )
     ]
 
@@ -175,7 +184,7 @@ def _model_row(spec: dict[str, Any]) -> Row:
     now = file_sha256(path) if path.is_file() else "missing"
     same = now == spec.get("model_sha256")
     return Row("segmentation model", path.name, path.name if now != "missing" else "missing",
-               "same SHA-256" if same else "the model file changed", same)  # fmt: skip
+               "same SHA-256" if same else "the model file changed", same, "input")  # fmt: skip
 
 
 def _options_row(recorded: PipelineOptions, used: PipelineOptions) -> Row:
@@ -183,7 +192,7 @@ def _options_row(recorded: PipelineOptions, used: PipelineOptions) -> Row:
 
     diff = _dict_diff(options_to_json(recorded), options_to_json(used))
     text = "; ".join(f"{k}: {a} -> {c}" for k, a, c in diff[:4]) + (" ..." if len(diff) > 4 else "")
-    return Row("options", "recorded", "recorded" if not diff else "changed", text or "same", not diff)
+    return Row("options", "recorded", "recorded" if not diff else "changed", text or "same", not diff, "input")
 
 
 def _dict_diff(a: Any, b: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
@@ -198,18 +207,18 @@ def _dict_diff(a: Any, b: Any, prefix: str = "") -> list[tuple[str, Any, Any]]:
 def _frame_row(recorded: RGBDFrame, used: RGBDFrame) -> Row:
     d0, d1 = np.asarray(recorded.depth_m), np.asarray(used.depth_m)
     if d0.shape != d1.shape:
-        return Row("frame", f"{d0.shape}", f"{d1.shape}", "another frame size", False)
+        return Row("frame", f"{d0.shape}", f"{d1.shape}", "another frame size", False, "input")
     same_depth = bool(np.array_equal(d0, d1, equal_nan=True))
     same_rgb = bool(np.array_equal(recorded.rgb, used.rgb))
     same_cam = recorded.camera.to_dict() == used.camera.to_dict()
     if same_depth and same_rgb and same_cam:
-        return Row("frame", "captured", "recorded frame", "same", True)
+        return Row("frame", "captured", "recorded frame", "same", True, "input")
     with np.errstate(invalid="ignore"):
         diff = np.abs(np.nan_to_num(d0) - np.nan_to_num(d1))
     parts = [] if same_depth else [f"depth max |d| {diff.max() * 1e3:.3f} mm on {int((diff > 0).sum())} px"]
     parts += [] if same_rgb else ["colour differs"]
     parts += [] if same_cam else ["camera differs"]
-    return Row("frame", "captured", "replaced", "; ".join(parts), False)
+    return Row("frame", "captured", "replaced", "; ".join(parts), False, "input")
 
 
 def _mask_rows(
@@ -266,14 +275,12 @@ def _fit_rows(recorded: list[dict[str, Any]], replayed: list[dict[str, Any]], ma
         rid = mapping.get(int(f["instance_id"]))
         g = by_id.get(rid) if rid is not None else None
         name = f"fit {f['instance_id']} {f['template']}"
-        rec = "accepted" if f["accepted"] else f"rejected ({f['reason']})"
+        rec = _verdict(f)
         if g is None:
             rows.append(Row(name, rec, "-", "no fit for this object", False))
             continue
         matched.add(int(g["instance_id"]))
-        rep = ("accepted" if g["accepted"] else f"rejected ({g['reason']})") + (
-            "" if g["template"] == f["template"] else f" as {g['template']}"
-        )
+        rep = _verdict(g) + ("" if g["template"] == f["template"] else f" as {g['template']}")
         a = np.asarray(f["frame_from_object"], dtype=np.float64)
         c = np.asarray(g["frame_from_object"], dtype=np.float64)
         dt_mm = float(np.linalg.norm(a[:3, 3] - c[:3, 3]) * 1e3)
@@ -289,6 +296,14 @@ def _fit_rows(recorded: list[dict[str, Any]], replayed: list[dict[str, Any]], ma
         if int(g["instance_id"]) not in matched:
             rows.append(Row(f"fit {g['instance_id']} {g['template']}", "-", "new", "a fit the recording lacks", False))
     return rows
+
+
+def _verdict(fit: dict[str, Any]) -> str:
+    """'accepted', or 'rejected (' + the first clause of the reason, at most 40 characters + ')'."""
+    if fit["accepted"]:
+        return "accepted"
+    first = str(fit["reason"]).split(";")[0].split(" (")[0]
+    return f"rejected ({first[:37] + '...' if len(first) > 40 else first})"
 
 
 def _plan_rows(recorded: dict[str, Any] | None, replayed: dict[str, Any] | None) -> list[Row]:
@@ -314,10 +329,8 @@ def _plan_rows(recorded: dict[str, Any] | None, replayed: dict[str, Any] | None)
                        [s["t"] for s in s0] == [s["t"] for s in s1]))  # fmt: skip
     b0, b1 = canonical_plan_bytes(recorded), canonical_plan_bytes(replayed)
     same = b0 == b1
-    rows.append(
-        Row("plan JSON bytes", f"{len(b0)} B", f"{len(b1)} B", "identical (without timing_ms)" if same else
-            _first_difference(b0, b1), same)
-    )  # fmt: skip
+    text = "identical (without timing_ms)" if same else _first_difference(recorded, replayed, b0, b1)
+    rows.append(Row("plan JSON bytes", f"{len(b0)} B", f"{len(b1)} B", text, same))
     return rows
 
 
@@ -332,10 +345,13 @@ def _q_row(item: str, q0: list[Any], q1: list[Any], same_names: bool) -> Row:
     return Row(item, str(len(q0)), str(len(q1)), text, same)
 
 
-def _first_difference(a: bytes, b: bytes) -> str:
+def _first_difference(p0: dict[str, Any] | None, p1: dict[str, Any] | None, a: bytes, b: bytes) -> str:
+    """Where two canonical plan documents part: the first byte and the top-level keys whose values differ."""
     n = next((k for k in range(min(len(a), len(b))) if a[k] != b[k]), min(len(a), len(b)))
-    line = a[:n].count(b"\n") + 1
-    return f"differ from byte {n} (line {line})"
+    keys = sorted(
+        k for k in set(p0 or {}) | set(p1 or {}) if k != "timing_ms" and (p0 or {}).get(k) != (p1 or {}).get(k)
+    )
+    return f"differ from byte {n}" + (f": {', '.join(keys)}" if keys else "")
 
 
 __all__ = ["ReplayReport", "Row", "assert_replays", "canonical_plan_bytes", "remake_segmenter", "replay_bundle"]
