@@ -1,0 +1,235 @@
+"""Replay bundles (issue 22 item 4): the cell loop on a synthetic bin saves a bundle per turn; replaying it offline
+reproduces the plan JSON byte for byte (without its wall-clock timing_ms); a perturbed depth frame or a changed
+option is detected; corrupt, foreign and unfinished bundles are refused with one line (exit 2); a failed write
+leaves nothing that looks like a bundle."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from normpos_grasp.cell import resolve_cell
+from normpos_grasp.cli.main import main
+from normpos_grasp.io.bop import BopScene
+from normpos_grasp.loop import SyntheticBinSource, run_cell_loop
+from normpos_grasp.pipeline import PipelineOptions, make_segmenter
+from normpos_grasp.replay import BundleRecorder, assert_replays, load_bundle, replay_bundle
+from normpos_grasp.replay.bundle import MANIFEST, file_sha256, list_bundles, verify_bundle
+from normpos_grasp.replay.errors import BundleError
+from normpos_grasp.replay.options import options_from_json, options_to_json, set_option
+from normpos_grasp.replay.replay import canonical_plan_bytes
+from normpos_grasp.sim.parts import default_part_library
+
+OPTIONS = PipelineOptions(fit_workers=1)
+
+
+@pytest.fixture(scope="module")
+def dry_bundles(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two dry-run turns of the loop on a 3-part synthetic bin (true masks), one bundle each."""
+    cell = resolve_cell("ur5e_bin_parallel")
+    source = SyntheticBinSource(cell, count=3, seed=1, validate_physics=False)
+    segmenter = source.ground_truth_segmenter()
+    with BundleRecorder(tmp_path_factory.mktemp("bundles"), segmenter) as recorder:
+        records = run_cell_loop(
+            cell, source, segmenter, default_part_library(), None, max_picks=2, options=OPTIONS, bundles=recorder
+        )
+    assert [r.status for r in records] == ["dry_run", "dry_run"]
+    assert recorder.saved == list_bundles(recorder.directory)
+    return recorder.saved
+
+
+def test_replay_reproduces_the_plan_byte_for_byte(dry_bundles: list[Path], tmp_path: Path) -> None:
+    bundle = dry_bundles[1]  # the first one is replayed in a fresh process below
+    out = tmp_path / "out"
+    assert main(["replay", str(bundle), "--out", str(out)]) == 0
+    recorded = json.loads((bundle / "plan.json").read_bytes())
+    replayed = json.loads((out / "plan.json").read_bytes())
+    assert recorded["status"] == "ok"
+    assert canonical_plan_bytes(replayed) == canonical_plan_bytes(recorded)
+    assert replayed["timing_ms"].keys() == recorded["timing_ms"].keys()  # the one field left out: wall times
+    report = json.loads((out / "replay.json").read_bytes())
+    assert report["identical"] is True
+    assert (out / "scene.glb").stat().st_size > 0
+    # the second turn planned from where the first plan ended: the bundle keeps that start
+    first = json.loads((dry_bundles[0] / "plan.json").read_bytes())
+    assert load_bundle(dry_bundles[1]).start_q.tolist() == first["joint_waypoints"][-1]["q"]
+
+
+def test_replay_in_a_fresh_process_is_identical(dry_bundles: list[Path], tmp_path: Path) -> None:
+    env = dict(os.environ, NORMPOS_GRASP_LOG_DIR=str(tmp_path))
+    done = subprocess.run(
+        [sys.executable, "-m", "normpos_grasp.cli.main", "replay", str(dry_bundles[0])],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "identical (without timing_ms)" in done.stdout
+
+
+def test_bundle_holds_what_the_cycle_saw(dry_bundles: list[Path]) -> None:
+    bundle = dry_bundles[0]
+    manifest = verify_bundle(bundle)
+    assert manifest["format"] == "normpos-grasp/replay-bundle@1"
+    assert manifest["versions"]["normpos_grasp"] and manifest["versions"]["numpy"] == np.__version__
+    on_disk = sorted(str(p.relative_to(bundle)) for p in bundle.rglob("*") if p.is_file() and p.name != MANIFEST)
+    assert sorted(manifest["files"]) == on_disk
+    for name, entry in manifest["files"].items():
+        assert file_sha256(bundle / name) == entry["sha256"]
+    b = load_bundle(bundle)
+    cell = resolve_cell("ur5e_bin_parallel")
+    assert (bundle / "cell.yaml").read_bytes() == Path(str(cell.source)).read_bytes()
+    assert b.cell.record() == cell.record()
+    assert b.options == OPTIONS  # every seed and setting, exactly
+    assert b.instances and all(i.mask.any() for i in b.instances)
+    # the BOP copy loads with the project's reader: depth within its 0.1 mm quantum, masks equal
+    scene = BopScene(bundle / "bop" / "000000")
+    frame = scene.load_frame(0)
+    valid = b.frame.depth_m > 0
+    assert np.max(np.abs(frame.depth_m[valid] - b.frame.depth_m[valid])) <= 0.05e-3 + 1e-12
+    assert np.array_equal(frame.rgb, b.frame.rgb)
+    for k, inst in enumerate(b.instances):
+        assert np.array_equal(scene.mask_visib(0, k), inst.mask)
+    gts = scene.gt(0)
+    accepted = {f["instance_id"] for f in b.fits if f["accepted"]}
+    assert [g.obj_id > 0 for g in gts] == [i.instance_id in accepted for i in b.instances]
+    from normpos_grasp.report.scene3d import TwinScene
+
+    twin = TwinScene.from_glb(bundle / "scene.glb")
+    assert any(name.startswith("fit/") for name, *_ in twin.meshes) and twin.clouds
+    execution = json.loads((bundle / "execution.json").read_bytes())
+    assert execution["report"]["status"] == "dry_run" and execution["trace"] is None
+
+
+def test_a_perturbed_depth_frame_is_detected(dry_bundles: list[Path]) -> None:
+    b = load_bundle(dry_bundles[0])
+    depth = b.frame.depth_m.copy()
+    target = next(i for i in b.instances if i.instance_id in {f["instance_id"] for f in b.fits if f["accepted"]})
+    depth[target.mask] += 0.004  # one part measured 4 mm farther away
+    report = replay_bundle(b, frame=replace(b.frame, depth_m=depth))
+    assert not report.identical
+    rows = {r.item: r for r in report.rows}
+    assert not rows["frame"].same and "4.000 mm" in rows["frame"].difference
+    fit_row = next(r for r in report.rows if r.item.startswith(f"fit {target.instance_id} "))
+    assert not fit_row.same
+    assert not rows["plan JSON bytes"].same
+    with pytest.raises(AssertionError, match="differs from the recording"):
+        assert_replays(b, frame=replace(b.frame, depth_m=depth))
+
+
+def test_a_changed_option_is_detected(dry_bundles: list[Path], capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    assert main(["replay", str(dry_bundles[0]), "--set", "fit.seed=3"]) == 1
+    out = capsys.readouterr().out
+    assert "fit.seed: 0 -> 3" in out and "DIFFERENT" in out
+    assert any(line.startswith("!  fit ") for line in out.splitlines())
+    assert main(["replay", str(dry_bundles[0]), "--set", "fit.nope=3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown option" in err[0]
+
+
+def test_bad_bundles_are_refused_in_one_line(
+    dry_bundles: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    corrupt = tmp_path / "corrupt"
+    shutil.copytree(dry_bundles[0], corrupt)
+    data = bytearray((corrupt / "frame.npz").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (corrupt / "frame.npz").write_bytes(bytes(data))
+    foreign = tmp_path / "foreign"
+    shutil.copytree(dry_bundles[0], foreign)
+    manifest = json.loads((foreign / MANIFEST).read_bytes())
+    (foreign / MANIFEST).write_text(json.dumps({**manifest, "format": "someone-else/bundle@7"}))
+    unfinished = tmp_path / "unfinished"
+    shutil.copytree(dry_bundles[0], unfinished)
+    (unfinished / MANIFEST).unlink()
+    cases = {corrupt: "SHA-256", foreign: "not a normpos-grasp/replay-bundle@1", unfinished: "no manifest.json"}
+    cases[tmp_path / "missing"] = "not a folder"
+    for path, words in cases.items():
+        capsys.readouterr()
+        assert main(["replay", str(path)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+        with pytest.raises(BundleError):
+            load_bundle(path)
+
+
+def test_a_failed_write_leaves_no_bundle(
+    dry_bundles: list[Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from normpos_grasp.report.scene3d import TwinScene
+
+    def broken(self: TwinScene, path: object) -> None:
+        raise OSError(28, "No space left on device")
+
+    cell = resolve_cell("ur5e_bin_parallel")
+    source = SyntheticBinSource(cell, count=1, seed=2, validate_physics=False)
+    segmenter = source.ground_truth_segmenter()
+    monkeypatch.setattr(TwinScene, "export_glb", broken)
+    with BundleRecorder(tmp_path, segmenter) as recorder, pytest.raises(OSError, match="No space"):
+        run_cell_loop(cell, source, segmenter, default_part_library(), None, max_picks=1, bundles=recorder)
+    assert list(tmp_path.iterdir()) == []  # neither a bundle nor its staging folder
+
+
+def test_depth_segmenter_bundle_segments_again_and_matches(tmp_path: Path) -> None:
+    cell = resolve_cell("ur5e_bin_parallel")
+    source = SyntheticBinSource(cell, count=2, seed=3, validate_physics=False)
+    segmenter = make_segmenter("depth")
+    with BundleRecorder(tmp_path, segmenter) as recorder:
+        run_cell_loop(cell, source, segmenter, default_part_library(), None, max_picks=1, options=OPTIONS,
+                      bundles=recorder)  # fmt: skip
+    b = load_bundle(recorder.saved[0])
+    assert b.segmenter["kind"] == "depth"
+    report = assert_replays(b)
+    masks = next(r for r in report.rows if r.item == "masks")
+    assert "segmented again" in masks.difference and "IoU min 1.0000" in masks.difference
+
+
+def test_executed_cycle_keeps_report_and_state_trace(tmp_path: Path) -> None:
+    from normpos_grasp.execution import SafetyLimits, SimDriver
+
+    cell = resolve_cell("ur5e_bin_parallel")
+    source = SyntheticBinSource(cell, count=2, seed=0, validate_physics=False)
+    segmenter = source.ground_truth_segmenter()
+    driver = SimDriver(SafetyLimits.from_cell(cell), q_home=np.asarray(cell.home_q, dtype=np.float64))
+    driver.connect()
+    try:
+        with BundleRecorder(tmp_path, segmenter, driver=driver, trace_period_s=0.05) as recorder:
+            records = run_cell_loop(cell, source, segmenter, default_part_library(), driver, execute=True,
+                                    max_picks=1, options=OPTIONS, bundles=recorder)  # fmt: skip
+    finally:
+        driver.disconnect()
+        driver.shutdown()
+    assert records[0].status == "picked"
+    execution = json.loads((recorder.saved[0] / "execution.json").read_bytes())
+    assert execution["report"]["status"] == "executed" and execution["report"]["commands_sent"] > 0
+    samples = execution["trace"]["samples"]
+    assert len(samples) > 10 and all(len(s["q"]) == 6 for s in samples)
+    moved = np.ptp(np.asarray([s["q"] for s in samples]), axis=0).max()
+    assert moved > 0.1  # the trace saw the arm move
+    plan_end = json.loads((recorder.saved[0] / "plan.json").read_bytes())["joint_waypoints"][-1]["q"]
+    assert np.abs(np.asarray(samples[-1]["q"]) - plan_end).max() < 0.01
+    assert assert_replays(recorder.saved[0]).identical
+
+
+def test_options_round_trip_exactly_and_strictly() -> None:
+    opts = set_option(set_option(PipelineOptions(), "plan.motion.seed", "11"), "fit.inlier_distance_m", "0.0031")
+    data = json.loads(json.dumps(options_to_json(opts)))
+    assert options_from_json(PipelineOptions, data) == opts
+    missing: list[str] = []
+    del data["fit"]["seed"]
+    assert options_from_json(PipelineOptions, data, missing=missing).fit.seed == 0
+    assert missing == ["options.fit.seed"]
+    with pytest.raises(BundleError, match="unknown option 'warp'"):
+        options_from_json(PipelineOptions, {**data, "warp": 9})
+    with pytest.raises(BundleError, match="whole number"):
+        options_from_json(PipelineOptions, {**data, "fit_workers": "two"})
