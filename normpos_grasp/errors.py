@@ -142,6 +142,15 @@ class DriverTimeout(DriverFault):
     """The controller did not answer in time."""
 
 
+class GripperFault(DriverFault):
+    """The gripper failed: its socket is missing (no URCap) or dropped, it did not activate or finish a move in
+    time, or it reports a fault code; `detail` holds what it last reported."""
+
+    def __init__(self, message: str, detail: Any = None) -> None:
+        super().__init__(message)
+        self.detail = detail
+
+
 class ControllerMismatch(NormposError):
     """The controller is not the arm the plan or cell names (robot model or serial number); nothing was sent."""
 

@@ -20,6 +20,7 @@ from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import DriverFault, InputError, RobotModelError, SafetyViolation
 from normpos_grasp.execution.driver import ArmDriver
+from normpos_grasp.execution.gripper_config import ToolDriver
 from normpos_grasp.execution.plan import ExecutionReport, execute_plan
 from normpos_grasp.execution.safety import SafetyLimits
 from normpos_grasp.perception.base import Segmenter
@@ -282,6 +283,8 @@ def run_cell_loop(
     on_pick: Callable[[PickRecord], None] | None = None,
     on_plan: Callable[[FrameResult], None] | None = None,
     bundles: BundleRecorder | None = None,
+    gripper: ToolDriver | None = None,
+    before_execute: Callable[[PickPlan], None] | None = None,
 ) -> list[PickRecord]:
     """Run picks until the source is exhausted, nothing is feasible, the driver faults, or `max_picks` turns.
 
@@ -294,7 +297,9 @@ def run_cell_loop(
     the gripper's detect input does not confirm ends it with 'pick_failed' (check 'grip_not_detected'). An interrupt
     (KeyboardInterrupt, TerminationRequested) or any other exception leaves through the driver's motion call, which
     stops the arm first. `bundles` (normpos_grasp.replay.BundleRecorder) saves a replay bundle of every record
-    (docs/replay.md), after `on_pick`.
+    (docs/replay.md), after `on_pick`. `gripper` (execution.gripper_config.ToolDriver, connected) is the cell's
+    gripper driver: the plan's opening is commanded to it and its grip detection decides 'pick_failed'.
+    `before_execute` hears every plan just before it is sent (a simulation puts the part in the emulated gripper).
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
@@ -330,7 +335,9 @@ def run_cell_loop(
         plan_json = plan.to_json()
         t0 = time.perf_counter()
         try:
-            report = execute_plan(driver, plan_json, limits, dry_run=not execute)
+            if execute and before_execute is not None:
+                before_execute(plan)
+            report = execute_plan(driver, plan_json, limits, dry_run=not execute, gripper=gripper)
         except (DriverFault, SafetyViolation) as exc:
             timings["execute"] = (time.perf_counter() - t0) * 1e3
             status = "driver_fault" if isinstance(exc, DriverFault) else "unsafe_plan"

@@ -25,6 +25,8 @@ from normpos_grasp.kinematics.ur_params import JOINT_NAMES, UR_PARAMS
 from normpos_grasp.records.tool import ToolModel, parallel_gripper, suction_tool, tool_from_gripper
 from normpos_grasp.typing import FloatArray
 
+from .gripper_driver import GripperDriverSpec, parse_gripper_driver
+
 # Ceilings of the motion caps. Joint speeds: each joint's rated speed (ur_params, from UR's ROS description).
 # UR rates no joint or tool acceleration (the ROS description says has_acceleration_limits: false), so the
 # acceleration and tool ceilings are the bounds ur_rtde itself enforces on moveJ / moveL arguments
@@ -63,8 +65,8 @@ _PLACE_KEYS = ("name", "world_from_tcp", "approach_m")
 _MOTION_KEYS = ("joint_velocity", "joint_acceleration", "tcp_speed_m_s", "tcp_acceleration_m_s2", "workspace")
 _WORKSPACE_KEYS = ("min", "max")
 _PLANNING_KEYS = ("entry_clearance_m", "lift_m", "voxel_m")
-_PACKAGED_GRIPPER_KEYS = ("model", "kind", "mount", "payload_kg")
-_CUSTOM_COMMON_KEYS = ("model", "kind", "mount", "payload_kg", "flange_to_tcp_m", "body_size_m")
+_PACKAGED_GRIPPER_KEYS = ("model", "kind", "mount", "payload_kg", "driver")
+_CUSTOM_COMMON_KEYS = ("model", "kind", "mount", "payload_kg", "flange_to_tcp_m", "body_size_m", "driver")
 _CUSTOM_PARALLEL_KEYS = (
     *_CUSTOM_COMMON_KEYS,
     "stroke_m",
@@ -169,6 +171,7 @@ class CellConfig:
     extra: dict[str, Any] = field(default_factory=dict)
     robot_serial: str | None = None
     floor_z: float | None = None
+    gripper_driver: GripperDriverSpec | None = None  # `gripper.driver` (None: not configured)
     source_sha256: str = ""  # of the file it was read from ('' for a cell built from a mapping)
 
     def record(self) -> dict[str, str]:
@@ -386,7 +389,7 @@ def _tool(v: Any, path: str, robot: str) -> ToolModel:
             raise _err(
                 _join(path, extra[0]),
                 "custom geometry keys need flange_to_tcp_m as well (a custom "
-                "gripper); for a packaged one give only model, kind, mount and payload_kg",
+                "gripper); for a packaged one give only model, kind, mount, payload_kg and driver",
             )
         d = _mapping(v, path, _PACKAGED_GRIPPER_KEYS)
         model = _text(_req(d, "model", path), f"{path}.model")
@@ -631,4 +634,9 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         source=source,
         robot_serial=serial,
         floor_z=floor_z,
+        gripper_driver=(
+            parse_gripper_driver(data["gripper"]["driver"], "gripper.driver", tool.kind, tool.stroke_m)
+            if "driver" in data["gripper"]
+            else None
+        ),
     )

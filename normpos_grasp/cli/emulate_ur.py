@@ -8,6 +8,7 @@ import signal
 import sys
 from typing import Any
 
+from normpos_grasp.errors import InputError
 from normpos_grasp.sim.ur_emulator import EmulatorOptions, UREmulator
 
 
@@ -27,6 +28,12 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the 500 Hz loop (0: normal scheduling)"
     )
+    parser.add_argument(
+        "--robotiq-model",
+        default="2F-85",
+        help="gripper behind the Robotiq URCap socket: 2F-85, 2F-140, or 'none' (a controller without the URCap)",
+    )
+    parser.add_argument("--robotiq-port", type=int, default=63352, help="TCP port of the Robotiq socket (1-65535)")
     parser.set_defaults(handler=run)
 
 
@@ -37,7 +44,11 @@ def run(args: argparse.Namespace) -> int:
         unlock_delay_s=args.unlock_delay,
         rt_priority=args.rt_priority,
         serial=args.serial,
+        robotiq_model="" if args.robotiq_model.lower() == "none" else args.robotiq_model,
+        robotiq_port=args.robotiq_port,
     )
+    if not 1 <= args.robotiq_port <= 65535:
+        raise InputError(f"--robotiq-port must be a TCP port 1-65535, got {args.robotiq_port}")
     if args.q_home is not None:
         options.q_home = tuple(args.q_home)
     emulator = UREmulator(options).start()
@@ -47,7 +58,11 @@ def run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _term)
-    print(f"emulate-ur: {args.model} listening on {args.host} (RTDE 30004, dashboard 29999, script 30003)", flush=True)
+    gripper = f", Robotiq {options.robotiq_model} {options.robotiq_port}" if options.robotiq_model else ""
+    print(
+        f"emulate-ur: {args.model} listening on {args.host} (RTDE 30004, dashboard 29999, script 30003{gripper})",
+        flush=True,
+    )
     try:
         emulator.serve_forever()
     except KeyboardInterrupt:

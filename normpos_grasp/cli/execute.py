@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from normpos_grasp.cell.gripper_driver import GripperDriverSpec, RobotiqDriverSpec
 from normpos_grasp.errors import InputError
 from normpos_grasp.execution import (
     DriverOptions,
@@ -27,6 +28,7 @@ from normpos_grasp.execution import (
     parse_plan,
     stop_signals,
 )
+from normpos_grasp.execution.gripper_config import gripper_io, tool_driver
 from normpos_grasp.execution.interrupts import signal_name
 
 EXIT_CODES = (
@@ -75,19 +77,26 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--close-output",
         type=int,
-        default=0,
-        help="digital output that closes the gripper (0-7 standard, 8-15 configurable)",
+        default=None,
+        help="digital output that closes the gripper (0-7 standard, 8-15 configurable; default 0), for a cell "
+        "without a gripper.driver section",
     )
-    parser.add_argument("--open-output", type=int, default=1, help="digital output that opens it (-1: none)")
-    parser.add_argument("--grip-input", type=int, default=-1, help="grip-detect digital input bit 0-17 (-1: none)")
+    parser.add_argument(
+        "--open-output", type=int, default=None, help="digital output that opens it (-1: none; default 1)"
+    )
+    parser.add_argument(
+        "--grip-input", type=int, default=None, help="grip-detect digital input bit 0-17 (-1: none, the default)"
+    )
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.set_defaults(handler=run)
 
 
-def _limits(args: argparse.Namespace, plan: dict[str, Any], robot: str) -> tuple[SafetyLimits, str | None]:
+def _limits(
+    args: argparse.Namespace, plan: dict[str, Any], robot: str
+) -> tuple[SafetyLimits, str | None, GripperDriverSpec | None]:
     """The limits that judge the plan: its cell's (--cell, else the cell the plan records), or a bare arm's with an
     explicit --workspace box; no cell and no box is refused (the arm would have no workspace at all). Also returns
-    the controller serial number the cell names (None: not checked)."""
+    the controller serial number the cell names (None: not checked) and the cell's `gripper.driver` (None: none)."""
     from normpos_grasp.cell import resolve_cell
 
     raw = plan.get("cell")
@@ -116,7 +125,7 @@ def _limits(args: argparse.Namespace, plan: dict[str, Any], robot: str) -> tuple
         limits = SafetyLimits.from_cell(cell, max_tool_accel=cell.motion.tcp_acceleration_m_s2)
         if args.workspace is not None:
             raise InputError("--workspace is for an arm outside any cell; the cell's workspace judges this plan")
-        return limits, cell.robot_serial
+        return limits, cell.robot_serial, cell.gripper_driver
     ws = args.workspace
     bare = SafetyLimits.for_model(
         robot,
@@ -125,18 +134,38 @@ def _limits(args: argparse.Namespace, plan: dict[str, Any], robot: str) -> tuple
         speed_fraction=args.speed_fraction,
         max_joint_accel=args.max_joint_accel,
     )
-    return bare, None
+    return bare, None, None
+
+
+def _gripper_wiring(args: argparse.Namespace, spec: GripperDriverSpec | None) -> GripperIO:
+    """The arm's gripper outputs: the cell's `gripper.driver`, else the command line's (defaults 0, 1, none)."""
+    given = (
+        ("--close-output", args.close_output),
+        ("--open-output", args.open_output),
+        ("--grip-input", args.grip_input),
+    )
+    flags = [flag for flag, value in given if value is not None]
+    if spec is not None:
+        if flags:
+            raise InputError(
+                f"the cell configures the gripper (gripper.driver, type {spec.kind}); {flags[0]} would contradict it: "
+                "drop the flag or the cell's driver section"
+            )
+        return gripper_io(spec) or GripperIO()
+    open_output = 1 if args.open_output is None else args.open_output
+    grip_input = -1 if args.grip_input is None else args.grip_input
+    return GripperIO(  # validated before anything moves: bad I/O indices never reach a moving arm
+        close_output=0 if args.close_output is None else args.close_output,
+        open_output=None if open_output < 0 else open_output,
+        grip_detect_input=None if grip_input < 0 else grip_input,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    gripper = GripperIO(  # validated before anything else: bad I/O indices never reach a moving arm
-        close_output=args.close_output,
-        open_output=None if args.open_output < 0 else args.open_output,
-        grip_detect_input=None if args.grip_input < 0 else args.grip_input,
-    )
     plan = load_plan(args.plan)
     parsed = parse_plan(plan)
-    limits, cell_serial = _limits(args, plan, parsed.robot)
+    limits, cell_serial, gripper_spec = _limits(args, plan, parsed.robot)
+    gripper = _gripper_wiring(args, gripper_spec)
     serial = args.robot_serial or cell_serial
     if not args.execute:
         report = execute_plan(None, plan, limits, dry_run=True)
@@ -144,17 +173,25 @@ def run(args: argparse.Namespace) -> int:
         if not args.robot:
             raise InputError("--robot is empty")
         if args.robot == "sim":
+            if isinstance(gripper_spec, RobotiqDriverSpec):
+                raise InputError(
+                    "the simulated driver has no Robotiq URCap socket: execute on the loopback controller "
+                    "(`normpos-grasp emulate-ur`, --robot 127.0.0.1) or on the arm"
+                )
             driver: SupervisedRtdeDriver | SimDriver = SimDriver(limits, gripper, q_home=parsed.q[0])
         else:
-            driver = SupervisedRtdeDriver(
-                args.robot, limits, gripper, DriverOptions(), expected_serial=serial
-            )
+            driver = SupervisedRtdeDriver(args.robot, limits, gripper, DriverOptions(), expected_serial=serial)
+        tool = tool_driver(gripper_spec, driver, args.robot)
         with stop_signals():
             try:
                 try:
                     driver.connect()
-                    report = execute_plan(driver, plan, limits, dry_run=False, options=ExecuteOptions())
+                    if tool is not None:
+                        tool.connect()  # a Robotiq activates here, before the arm moves
+                    report = execute_plan(driver, plan, limits, dry_run=False, options=ExecuteOptions(), gripper=tool)
                 finally:
+                    if tool is not None:
+                        tool.disconnect()
                     driver.disconnect()  # stops the arm first if it still moves
                     if isinstance(driver, SimDriver):
                         driver.shutdown()

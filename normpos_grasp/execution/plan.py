@@ -23,6 +23,7 @@ from normpos_grasp.typing import FloatArray
 from normpos_grasp.validation import as_float_array, check_pose
 
 from .driver import ArmDriver
+from .gripper_config import ToolDriver, arm_watch
 from .safety import SafetyLimits
 
 log = logging.getLogger(__name__)
@@ -205,20 +206,38 @@ def _split_trajectory(parsed: ParsedPlan) -> list[tuple[FloatArray, FloatArray]]
     return [(parsed.traj_t[a : b + 1], parsed.traj_q[a : b + 1]) for a, b in zip(idx[:-1], idx[1:], strict=True)]
 
 
+def _grasp_opening(plan: dict[str, Any]) -> float | None:
+    """The plan's jaw opening before closing (`grasp.opening_m`, else `tool.opening_m`), m; None when absent or 0
+    (a suction grasp)."""
+    for key in ("grasp", "tool"):
+        entry = plan.get(key)
+        if isinstance(entry, dict) and "opening_m" in entry:
+            value = entry["opening_m"]
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= float(value) < 2.0:
+                raise InputError(f"plan.{key}.opening_m: expected an opening in metres, got {value!r}")
+            return float(value) if value > 0 else None
+    return None
+
+
 def execute_plan(
     driver: ArmDriver | None,
     plan: dict[str, Any],
     limits: SafetyLimits,
     dry_run: bool = True,
     options: ExecuteOptions | None = None,
+    gripper: ToolDriver | None = None,
 ) -> ExecutionReport:
     """Check `plan` against `limits` and, unless `dry_run`, run it on `driver` (connected).
 
-    The whole plan is checked before the first command. Faults raise the driver's typed DriverFault subclass
-    (ProtectiveStop, EmergencyStop, ConnectionLost, DriverTimeout) with the arm stopped.
+    gripper: the cell's gripper driver (connected; execution.gripper_config): it opens to the plan's grasp opening
+    (`grasp.opening_m`) before the approach and at the place, closes at the grasp and reports the grip; None: the
+    arm driver's digital outputs and its grip-detect input. The whole plan is checked before the first command.
+    Faults raise the driver's typed DriverFault subclass (ProtectiveStop, EmergencyStop, ConnectionLost,
+    DriverTimeout, GripperFault) with the arm stopped.
     """
     opts = options or ExecuteOptions()
     parsed = parse_plan(plan)
+    opening = _grasp_opening(plan)
     used = check_plan(parsed, limits)
     # movej speed / acceleration between waypoints: the options, never above the caps
     speed = min(opts.speed, float(np.min(used.max_joint_speed)))
@@ -244,9 +263,15 @@ def execute_plan(
         steps.append(
             StepRecord(parsed.names[0], "approach", time.monotonic() - t0, float(np.max(np.abs(st.q - parsed.q[0]))))
         )
+    watch = arm_watch(driver)
+    if gripper is not None and opening is not None:
+        messages.append(f"gripper opening {opening * 1000:.1f} mm (the plan's)")
     if opts.open_first:
         t0 = time.monotonic()
-        driver.gripper_open()
+        if gripper is not None:
+            gripper.open(opening, watch)
+        else:
+            driver.gripper_open()
         steps.append(StepRecord(parsed.names[0], "gripper_open", time.monotonic() - t0))
     grip: bool | None = None
     stream_from = 0  # index of the waypoint the current trajectory stream starts at
@@ -267,10 +292,15 @@ def execute_plan(
         steps.append(StepRecord(name, kind, time.monotonic() - t0, float(np.max(np.abs(st.q - parsed.q[k])))))
         if name in opts.close_at:
             t0 = time.monotonic()
-            driver.gripper_close()
+            if gripper is not None:
+                gripper.close(watch)
+                detects = gripper.detects_grip
+            else:
+                driver.gripper_close()
+                detects = getattr(getattr(driver, "gripper", None), "grip_detect_input", None) is not None
             steps.append(StepRecord(name, "gripper_close", time.monotonic() - t0))
-            if opts.check_grip and getattr(getattr(driver, "gripper", None), "grip_detect_input", None) is not None:
-                grip = driver.grip_detected()
+            if opts.check_grip and detects:
+                grip = gripper.grip_detected() if gripper is not None else driver.grip_detected()
                 messages.append(f"grip detected: {grip}")
                 if not grip:
                     # a missed grip stops the pick here (the arm rests at the grasp): no carrying on to the place
@@ -287,7 +317,10 @@ def execute_plan(
                     )
         if name in opts.open_at:
             t0 = time.monotonic()
-            driver.gripper_open()
+            if gripper is not None:
+                gripper.open(opening, watch)
+            else:
+                driver.gripper_open()
             steps.append(StepRecord(name, "gripper_open", time.monotonic() - t0))
     final = driver.state()
     err = float(np.max(np.abs(final.q - parsed.q[-1])))

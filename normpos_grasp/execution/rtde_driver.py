@@ -257,6 +257,7 @@ class RtdeDriver(GuardedDriver):
             program_running=bool(status & 2),
             digital_out=int(r.getActualDigitalOutputBits()),
             digital_in=int(r.getActualDigitalInputBits()),
+            analog_in=(float(r.getStandardAnalogInput0()), float(r.getStandardAnalogInput1())),
             received_at=self._last_change,
         )
 

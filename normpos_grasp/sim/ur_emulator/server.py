@@ -1,4 +1,5 @@
-"""Socket servers of the loopback UR controller: RTDE (30004), dashboard (29999), script (30003), and the 500 Hz loop.
+"""Socket servers of the loopback UR controller: RTDE (30004), dashboard (29999), script (30003), the Robotiq
+URCap's gripper socket (63352, robotiq_server.py), and the 500 Hz loop.
 
 Ports are fixed (ur_rtde hard-codes them), so one emulator listens per loopback address; run several on
 127.0.0.1, 127.0.0.2, ... Faults are injected through the API (`inject_*`) or through dashboard lines starting
@@ -20,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.hosts import is_ipv4_loopback_literal
 from normpos_grasp.kinematics.ur_params import ur_params
@@ -27,6 +30,7 @@ from normpos_grasp.kinematics.ur_params import ur_params
 from . import protocol as P
 from .arm import IKSolver
 from .controller import EmulatedController, EmulatorOptions
+from .robotiq_server import ROBOTIQ_MODELS, RobotiqServer, SimulatedRobotiq
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +122,20 @@ class UREmulator:
         self.refuse_rtde_until = 0.0
         self.periods: list[float] = []
         self.overruns = 0
+        self.robotiq: SimulatedRobotiq | None = None
+        self._robotiq_server: RobotiqServer | None = None
+        if self.options.robotiq_model:
+            model = ROBOTIQ_MODELS.get(self.options.robotiq_model.upper())
+            if model is None:
+                raise InputError(
+                    f"unknown Robotiq gripper {self.options.robotiq_model!r}; known: {', '.join(ROBOTIQ_MODELS)}"
+                )
+            self.robotiq = SimulatedRobotiq(model, self._tcp_position)
+
+    def _tcp_position(self) -> Any:
+        """TCP position in the base frame, m (the simulated Robotiq's parts are placed relative to it)."""
+        with self.controller.lock:
+            return self.controller.arm.base_from_tcp()[:3, 3].copy()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> UREmulator:
@@ -142,6 +160,12 @@ class UREmulator:
             lst.listen(8)
             self._listeners.append(lst)
             self._spawn(self._accept_loop, lst, handler)
+        if self.robotiq is not None:
+            try:
+                self._robotiq_server = RobotiqServer(self.robotiq, self.options.host, self.options.robotiq_port).start()
+            except NormposError:
+                self.stop()
+                raise
         self._spawn(self._control_loop)
         log.info("UR emulator (%s) listening on %s", self.options.model, self.options.host)
         return self
@@ -153,6 +177,8 @@ class UREmulator:
 
     def stop(self) -> None:
         self._stop.set()
+        if self._robotiq_server is not None:
+            self._robotiq_server.stop()
         for sock in self._listeners:
             with contextlib.suppress(OSError):
                 sock.close()
@@ -443,12 +469,14 @@ class UREmulator:
 
     def _emu(self, args: list[str]) -> str:
         """Fault-injection verbs: protective_stop, estop, release_estop, drop [refuse_s], stall S,
-        unlock_delay S, set_input BIT 0|1, state, since T (stops after time.monotonic() T, for measurements)."""
+        unlock_delay S, set_input BIT 0|1, set_analog 0|1 VALUE, state, since T (stops after time.monotonic() T,
+        for measurements), gripper part W [X Y Z [R]] | part none | fault CODE | state (the simulated Robotiq: a part
+        of width W m at base-frame X Y Z within R m of the TCP, default anywhere; a FLT code; its registers)."""
         c = self.controller
         if not args:
             return (
                 "emu: verbs are protective_stop, estop, release_estop, drop [refuse_s], stall S, unlock_delay S, "
-                "set_input BIT 0|1, state, since T"
+                "set_input BIT 0|1, set_analog 0|1 VALUE, state, since T, gripper part|fault|state"
             )
         verb = args[0].lower()
         try:
@@ -468,6 +496,14 @@ class UREmulator:
                 bit, level = int(args[1]), int(args[2])
                 with c.lock:
                     c.digital_in = (c.digital_in | (1 << bit)) if level else (c.digital_in & ~(1 << bit))
+            elif verb == "set_analog":
+                index, value = int(args[1]), float(args[2])
+                if index not in (0, 1):
+                    return f"emu: standard analog inputs are 0 and 1, got {index}"
+                with c.lock:
+                    c.analog_in[index] = value
+            elif verb == "gripper":
+                return self._emu_gripper(args[1:])
             elif verb == "state":
                 with c.lock:
                     q = ",".join(f"{v:.6f}" for v in c.arm.q)
@@ -485,6 +521,31 @@ class UREmulator:
         except (IndexError, ValueError) as exc:
             return f"emu: bad arguments {args!r}: {exc}"
         return f"emu ok {verb}"
+
+    def _emu_gripper(self, args: list[str]) -> str:
+        """`gripper part W [X Y Z [R]]`, `gripper part none`, `gripper fault CODE`, `gripper state`."""
+        g = self.robotiq
+        if g is None:
+            return "emu: this emulator serves no Robotiq socket (robotiq_model '')"
+        if not args:
+            return "emu: gripper part W [X Y Z [R]] | part none | fault CODE | state"
+        sub = args[0].lower()
+        if sub == "state":
+            return "emu " + g.describe()
+        if sub == "part" and len(args) == 2 and args[1].lower() == "none":
+            g.set_part(None)
+        elif sub == "part" and len(args) in (2, 5, 6):
+            width = float(args[1])
+            if not 0.0 < width < 1.0:
+                return f"emu: part width {width} m must be in (0, 1) m"
+            position = None if len(args) == 2 else [float(v) for v in args[2:5]]
+            radius = float(args[5]) if len(args) == 6 else 0.02
+            g.set_part(width, None if position is None else np.array(position), radius)
+        elif sub == "fault" and len(args) == 2:
+            g.inject_fault(int(args[1], 0))
+        else:
+            return f"emu: bad gripper arguments {args!r}"
+        return f"emu ok gripper {sub}"
 
     # ------------------------------------------------------------------ the 500 Hz loop
     def _control_loop(self) -> None:
