@@ -173,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
     from normpos_grasp.cell import resolve_cell
     from normpos_grasp.errors import InputError
     from normpos_grasp.execution import DriverOptions, SafetyLimits, SimDriver, SupervisedRtdeDriver, stop_signals
+    from normpos_grasp.execution.gripper_config import gripper_io, tool_driver
     from normpos_grasp.execution.interrupts import exit_code, signal_name
     from normpos_grasp.loop import PickRecord, run_cell_loop
     from normpos_grasp.pipeline import FrameResult
@@ -185,6 +186,8 @@ def run(args: argparse.Namespace) -> int:
     source, library, segmenter, source_kind = _source(args, cell)
     limits = SafetyLimits.from_cell(cell)
     driver: Any = None
+    tool: Any = None  # the cell's gripper driver (gripper.driver), connected after the arm
+    before_execute: Any = None
     view: Any = None
     bundles: Any = None
     out: Path | None = args.out
@@ -196,13 +199,28 @@ def run(args: argparse.Namespace) -> int:
             try:
                 if args.execute:
                     options = DriverOptions(arrive_tol_rad=args.arrive_tol)
+                    spec = cell.gripper_driver
                     if args.robot == "sim":
+                        if spec is not None:
+                            print(
+                                f"gripper.driver ({spec.kind}) is not used with --robot sim (no controller I/O): the "
+                                "source's check judges each pick",
+                                flush=True,
+                            )
                         driver = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64), options=options)
                     else:
                         driver = SupervisedRtdeDriver(
-                            args.robot, limits, options=options, expected_serial=args.robot_serial
+                            args.robot,
+                            limits,
+                            gripper_io(spec),
+                            options=options,
+                            expected_serial=args.robot_serial,
                         )
+                        tool = tool_driver(spec, driver, args.robot)
+                        before_execute = emulated_part_hook(source, cell, args.robot, spec)
                     driver.connect()
+                    if tool is not None:
+                        tool.connect()  # a Robotiq activates (and calibrates) before the arm moves
                     if not args.no_home:
                         speed = min(1.0, float(np.min(cell.motion.joint_velocity)))
                         accel = min(2.0, float(np.min(cell.motion.joint_acceleration)))
@@ -268,6 +286,8 @@ def run(args: argparse.Namespace) -> int:
                     max_picks=args.max_picks,
                     on_pick=on_pick,
                     on_plan=on_plan,
+                    gripper=tool,
+                    before_execute=before_execute,
                     bundles=bundles,
                 )
                 if view is not None and args.linger > 0:
@@ -277,6 +297,8 @@ def run(args: argparse.Namespace) -> int:
                     bundles.close()
                 if view is not None:
                     view.close()
+                if tool is not None:
+                    tool.disconnect()
                 if driver is not None:
                     driver.disconnect()
                     if isinstance(driver, SimDriver):
@@ -325,6 +347,46 @@ def _library_sources(args: argparse.Namespace, cell: Any, library: Any) -> tuple
     if all(builtin.get(t.name) == template_sha256(t) for t in library):
         return ()
     return (str(cell.templates_path),) if cell.templates_path is not None else ()
+
+
+def emulated_part_hook(source: Any, cell: Any, robot: str, spec: Any) -> Any:
+    """For a synthetic bin picked on the loopback controller with a Robotiq: before each plan is sent, put the true
+    part in the emulated gripper (`emu gripper part`): its width across the fingers is the true mesh's section in the
+    plane of the grasp TCP (no section: nothing between the fingers, the gripper closes on nothing), placed where
+    the controller's TCP (the flange: the loopback controller has no TCP offset set) will be at the grasp, caught
+    within 2 cm of it. None when any of the three does not apply."""
+    from normpos_grasp.cell.gripper_driver import RobotiqDriverSpec
+    from normpos_grasp.hosts import is_ipv4_loopback_literal
+    from normpos_grasp.loop import SyntheticBinSource
+    from normpos_grasp.sim.ur_emulator.process import dashboard_request
+
+    if not (isinstance(source, SyntheticBinSource) and isinstance(spec, RobotiqDriverSpec)):
+        return None
+    if not is_ipv4_loopback_literal(robot):
+        return None
+
+    def put_part(plan: Any) -> None:
+        width = None
+        part = source.true_part_of(plan)
+        if part >= 0 and plan.chosen is not None:
+            world_from_tcp = np.asarray(plan.chosen.candidate.world_from_tcp, dtype=np.float64)
+            mesh = source.layout.templates[part].mesh.copy().apply_transform(source.layout.world_from_object[part])
+            section = mesh.section(plane_origin=world_from_tcp[:3, 3], plane_normal=world_from_tcp[:3, 2])
+            if section is not None and len(section.vertices):
+                x = (np.asarray(section.vertices) - world_from_tcp[:3, 3]) @ world_from_tcp[:3, 0]
+                width = float(np.max(x) - np.min(x))
+        if width is None or not 0.0 < width < 1.0:
+            dashboard_request(robot, "emu gripper part none")
+            return
+        base_from_flange = (
+            np.linalg.inv(cell.world_from_base)
+            @ np.asarray(plan.chosen.candidate.world_from_tcp)
+            @ np.linalg.inv(cell.tool.flange_from_tcp)
+        )
+        xyz = " ".join(f"{v:.6f}" for v in base_from_flange[:3, 3])
+        dashboard_request(robot, f"emu gripper part {width:.5f} {xyz} 0.02")
+
+    return put_part
 
 
 def _run_summary(
