@@ -16,6 +16,7 @@ from normpos_grasp.errors import InputError
 from normpos_grasp.measure.depth_bias import DepthBiasEstimate, DepthBiasOptions, check_frame_depth
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.perception.cad_detector import CadDetector, RegionOfInterest
 from normpos_grasp.perception.change import unchanged
 from normpos_grasp.perception.factory import make_segmenter
 from normpos_grasp.planning.plan import PlanOptions, plan_pick
@@ -95,16 +96,26 @@ def perceive(
     options: PipelineOptions | None = None,
     instances: Sequence[Instance] | None = None,
     previous: FrameResult | None = None,
+    cell: CellConfig | None = None,
 ) -> FrameResult:
     """Segment (unless `instances` are given), measure and fit every object of `frame`; no planning.
 
     previous: the last frame's result from the same, unmoved camera: an object whose mask and depth did not change
     since then keeps its accepted fit (`PipelineOptions.reuse`); everything else is fitted anew.
+    A `CadDetector` segmenter (kind 'cad') detects the library's templates itself: its poses are the fits (not fitted
+    again); its region of interest defaults to `cell`'s bin interior or table top.
     """
     opts = options or PipelineOptions()
     templates = list(library)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    if instances is None and isinstance(segmenter, CadDetector):
+        roi = RegionOfInterest.from_cell(cell) if cell is not None and segmenter.roi is None else None
+        det = segmenter.detect(frame, templates, opts.measure, opts.fit, roi=roi)
+        timings["segment"] = det.timings_ms.get("total", _ms(t0))
+        timings["measure"] = 0.0
+        timings["fit"] = 0.0  # the poses come with the detection (included in 'segment')
+        return FrameResult(frame, det.instances, det.normpositions, det.fits, None, timings)
     if instances is not None:
         found = list(instances)
     elif segmenter is not None:
@@ -159,7 +170,7 @@ def process_frame(
     check = None
     if opts.depth_bias is not None:
         frame, check = check_frame_depth(frame, cell, opts.depth_bias)
-    result = perceive(frame, segmenter, library, opts, instances)
+    result = perceive(frame, segmenter, library, opts, instances, cell=cell)
     t0 = time.perf_counter()
     plan = plan_pick(result.fits, result.normpositions, cell, opts.plan, start_q)
     timings = dict(result.timings_ms, plan=_ms(t0))

@@ -43,9 +43,9 @@ LAYERS: tuple[str, ...] = (
     "sim",  # scene synthesis, rendering, physics judge, UR controller emulator
     # stages
     "measure",
-    "perception",
     "templates",
     "grasp",
+    "perception",  # above templates: the cad detector finds templates in the whole scene (perception.cad_detector)
     "planning",
     "execution",
     # one frame, then the applications around it

@@ -108,7 +108,7 @@ def scene_segmenter(
 
     md = None if models_dir is None else str(models_dir)
     choice = choose_segmenter(
-        kind, seg_model, labels, lambda: GroundTruthSegmenter(scene, GroundTruthOptions(models_dir=md))
+        kind, seg_model, labels, lambda: GroundTruthSegmenter(scene, GroundTruthOptions(models_dir=md)), library
     )
     if choice.kind == "gt" and library is not None:
         return SegmenterChoice(LibraryLabels(choice.segmenter, library), "gt")

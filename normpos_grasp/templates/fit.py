@@ -191,6 +191,26 @@ def fit_template(
     return _fit_prepared(normpos, template, meas, opts, _context(camera, opts), 0.0, t0)
 
 
+def fit_template_from(
+    normpos: NormPosition,
+    template: Template,
+    starts: FloatArray,
+    options: FitOptions | None = None,
+    camera: FitContext | None = None,
+) -> TemplateFit:
+    """`fit_template` from given starting poses instead of its own hypotheses (a detector that already found the
+    object): (K, 4, 4) `frame_from_object` in the norm-position's frame. Refinement, turned variants, scoring and
+    acceptance are `fit_template`'s."""
+    opts = options or FitOptions()
+    t0 = time.perf_counter()
+    try:
+        meas = _prepare_measurement(normpos, opts)
+    except _TooFew as exc:
+        return _rejected(template, normpos, str(exc), t0)
+    starts_ofc = np.asarray(np.linalg.inv(np.asarray(starts, dtype=np.float64).reshape(-1, 4, 4)), dtype=np.float64)
+    return _fit_prepared(normpos, template, meas, opts, _context(camera, opts), 0.0, t0, starts_ofc)
+
+
 def _fit_prepared(
     normpos: NormPosition,
     template: Template,
@@ -199,11 +219,12 @@ def _fit_prepared(
     camera: FitContext | None,
     floor: float,
     t0: float,
+    starts: FloatArray | None = None,
 ) -> TemplateFit:
     """`fit_template` on a prepared measurement and context (`_context`); poses whose score bound is below
-    `floor` are not scored."""
+    `floor` are not scored; `starts` ((K, 4, 4) object_from_frame) replace the hypotheses."""
     prep = prepare(template)
-    cands = _fit_candidates(prep, template, normpos, meas, opts, camera, floor)
+    cands = _fit_candidates(prep, template, normpos, meas, opts, camera, floor, starts)
     if not cands:
         reason = "no pose hypothesis explained the measured points"
         if floor > 0:
@@ -414,15 +435,19 @@ def _fit_candidates(
     opts: FitOptions,
     ctx: FitContext | None,
     floor: float = 0.0,
+    starts: FloatArray | None = None,
 ) -> list[_Candidate]:
     rng = np.random.default_rng(opts.seed + 1)
     hyps = []
-    if opts.use_pca:
-        hyps.append(_pca_hypotheses(prep, meas))
-    if opts.ransac_iterations > 0:
-        hyps.append(_ransac(prep, meas, opts, rng))
-    if opts.use_control_points and template.control_points:
-        hyps.append(control_point_hypotheses(template, meas.all_pts, meas.viewpoint, prep.diameter))
+    if starts is not None:
+        hyps.append(starts)
+    else:
+        if opts.use_pca:
+            hyps.append(_pca_hypotheses(prep, meas))
+        if opts.ransac_iterations > 0:
+            hyps.append(_ransac(prep, meas, opts, rng))
+        if opts.use_control_points and template.control_points:
+            hyps.append(control_point_hypotheses(template, meas.all_pts, meas.viewpoint, prep.diameter))
     poses = np.concatenate([h for h in hyps if len(h)], axis=0) if any(len(h) for h in hyps) else np.zeros((0, 4, 4))
     if len(poses) == 0:
         return []

@@ -1,0 +1,558 @@
+"""CAD detection in the whole region of interest (`--segmenter cad`): instances found by their templates, no masks.
+
+1. Region of interest: valid depth inside the bin interior (or over the table top) from the cell, minus the support
+   plane (points within a noise band of it or behind it); without a cell, the frame's dominant plane is removed.
+2. The ROI cloud (camera frame) voxel-averaged at each template's point-pair step, normals from the neighbours.
+3. Hypotheses per template from point-pair-feature voting (`templates.ppf`), clustered; each pulled in by a short
+   ICP on the scene points near it and ranked by the full-resolution ROI pixels its surface explains.
+4. Greedy selection: the hypothesis explaining the most pixels not yet claimed is measured on its explained pixels
+   and verified by the existing fit (`templates.fit.fit_template_from`: refinement, turned variants, scoring,
+   rival and free-space tests); an accepted pose claims its pixels. Rounds repeat PPF on the unexplained residual
+   until a round accepts nothing new.
+5. Instances: masks rendered from the accepted poses (z-buffered together, kept where measured depth agrees),
+   returned with their norm-positions and fits (`CadDetection`) so `pipeline.perceive` does not fit them again.
+
+Segments of another segmenter (`hints`) are optional: in the first round a hint's points are the PPF reference
+points and a hint's label (when the library has it) restricts the templates voted for.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from normpos_grasp.camera.model import RGBDFrame
+from normpos_grasp.cell.config import CellConfig
+from normpos_grasp.errors import InputError
+from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.measure.depth_bias import plane_in_camera, support_plane_world
+from normpos_grasp.measure.measure import MeasureOptions, backproject_depth, measure_instances
+from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.normpos import NormPosition
+from normpos_grasp.records.template import Template, TemplateFit
+from normpos_grasp.templates import kernels, ppf
+from normpos_grasp.templates.fit import FitContext, FitOptions, estimate_normals, fit_template_from
+from normpos_grasp.templates.icp import icp
+from normpos_grasp.templates.prepared import PreparedTemplate, prepare
+from normpos_grasp.typing import BoolArray, FloatArray, IntArray
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CadDetection", "CadDetector", "CadOptions", "RegionOfInterest"]
+
+
+@dataclass(frozen=True, eq=False)
+class RegionOfInterest:
+    """Where parts may lie, world frame (metres).
+
+    plane_world: (4,) support plane n . x + d = 0 (n up, unit) or None (the frame's dominant plane is used);
+    world_from_box / box_size: (4, 4) centre pose and (3,) full extents of the box parts lie in (the bin interior
+    up to `above_m` over its rim), or None (everything above the plane); plane_camera: (4,) the support plane in
+    the camera frame, for a camera without extrinsics (used before plane_world).
+    """
+
+    plane_world: FloatArray | None = None
+    world_from_box: FloatArray | None = None
+    box_size: FloatArray | None = None
+    plane_camera: FloatArray | None = None
+
+    @classmethod
+    def from_cell(cls, cell: CellConfig, above_m: float = 0.15) -> RegionOfInterest:
+        """The bin interior (walls excluded, up to `above_m` over the rim) or the table top of `cell`."""
+        plane = support_plane_world(cell)
+        if cell.bin is not None:
+            lx, ly, h = (float(v) for v in cell.bin.inner_size)
+            centre = np.eye(4)
+            centre[2, 3] = (h + above_m) / 2
+            return cls(plane, cell.bin.world_from_bin @ centre, np.array([lx, ly, h + above_m]))
+        return cls(plane)
+
+
+@dataclass(frozen=True)
+class CadOptions:
+    """Settings of `CadDetector`.
+
+    plane_band_m: points within this distance of the support plane (plus 2.5 x the depth noise) are the plane.
+    wall_margin_m: the ROI box is shrunk by this much on each side (points on the bin walls), metres.
+    ref_every: every ref_every-th downsampled ROI point is a PPF reference point; n_peaks: accumulator peaks kept
+        per reference point; hypotheses: clustered hypotheses per template and round.
+    pull_in: voted poses per template and round pulled in by ICP (those explaining the most downsampled points).
+    icp_iterations: ICP iterations pulling each hypothesis onto the scene points near it.
+    explain_tol_m: a pixel is explained by a pose when its point lies within this distance (plus 2.5 x noise) of
+        the posed model surface, metres.
+    min_pixels: fewest explained pixels (not claimed by an accepted pose) for a hypothesis to be verified.
+    min_new_share: a hypothesis whose explained pixels are less than this share unclaimed is skipped.
+    crop_band_m: the fit of a hypothesis measures the unclaimed ROI pixels within the explain tolerance plus this
+        band (metres) of the pose, so nearby surfaces the pose does not explain count against it.
+    min_support / max_see_through: a pulled-in pose needs at least this share of its visible unoccluded surface
+        supported by depth and at most this share seen through (`_evidence`) to be ranked at all.
+    min_score: an accepted fit scoring below this is not taken (the fit's acceptance plus this floor: in the held-out
+        benchmark's precision-against-score table accepted fits below 0.7 were mostly wrong; chosen on seed 1).
+    max_verify: most hypotheses verified per round (the best-explaining first).
+    max_rounds: PPF rounds on the residual; a round that accepts nothing ends the detection.
+    noise_per_m2: depth noise RMS per squared range, 1/m (D435: 0.0036).
+    """
+
+    plane_band_m: float = 0.004
+    wall_margin_m: float = 0.003
+    ref_every: int = 5
+    n_peaks: int = 2
+    hypotheses: int = 24
+    pull_in: int = 10
+    icp_iterations: int = 8
+    explain_tol_m: float = 0.003
+    min_pixels: int = 80
+    min_new_share: float = 0.6
+    max_verify: int = 40
+    crop_band_m: float = 0.006
+    min_support: float = 0.6
+    min_score: float = 0.7
+    max_see_through: float = 0.1
+    max_rounds: int = 3
+    noise_per_m2: float = 0.0036
+
+    def __post_init__(self) -> None:
+        if not (self.ref_every >= 1 and self.n_peaks >= 1 and self.hypotheses >= 1 and self.max_rounds >= 1):
+            raise InputError(
+                "cad detection needs ref_every, n_peaks, hypotheses and max_rounds >= 1; got "
+                f"{self.ref_every}, {self.n_peaks}, {self.hypotheses}, {self.max_rounds}"
+            )
+        if not (0.0 < self.min_new_share <= 1.0 and self.explain_tol_m > 0 and self.min_pixels >= 3):
+            raise InputError(
+                f"need min_new_share in (0, 1], explain_tol_m > 0 and min_pixels >= 3; got {self.min_new_share}, "
+                f"{self.explain_tol_m}, {self.min_pixels}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class CadDetection:
+    """What `CadDetector.detect` found: instances (masks from the accepted poses), their norm-positions and fits
+    (one each, matched by instance_id), the number of hypotheses voted and verified, and wall times (ms)."""
+
+    instances: list[Instance]
+    normpositions: list[NormPosition]
+    fits: list[TemplateFit]
+    n_hypotheses: int = 0
+    n_verified: int = 0
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class _Hyp:
+    template: Template
+    prep: PreparedTemplate
+    camera_from_object: FloatArray
+    pixels: IntArray  # flat pixel indices it explains
+    votes: float
+    quality: float = 1.0  # depth evidence (`CadDetector._evidence`)
+
+
+class CadDetector:
+    """The `cad` segmenter: CAD instances found in the whole region of interest (module docstring).
+
+    library: the templates to detect (or given to `detect` by the pipeline); roi: where parts lie (None: above the
+    frame's dominant plane); hints: an optional segmenter whose segments guide the first round.
+    """
+
+    def __init__(
+        self,
+        library: Iterable[Template] | None = None,
+        roi: RegionOfInterest | None = None,
+        hints: Segmenter | None = None,
+        options: CadOptions | None = None,
+    ) -> None:
+        self.library = list(library) if library is not None else None
+        self.roi = roi
+        self.hints = hints
+        self.options = options or CadOptions()
+        self._camera_k = np.eye(3)  # the frame's intrinsics and depth while `detect` runs
+        self._depth = np.zeros((1, 1))
+
+    def segment(self, frame: RGBDFrame) -> list[Instance]:
+        """The detected instances (labels from the templates, scores from the fits)."""
+        return self.detect(frame).instances
+
+    def detect(
+        self,
+        frame: RGBDFrame,
+        library: Iterable[Template] | None = None,
+        measure: MeasureOptions | None = None,
+        fit: FitOptions | None = None,
+        hint_instances: Sequence[Instance] | None = None,
+        roi: RegionOfInterest | None = None,
+    ) -> CadDetection:
+        """Detect the templates of `library` (default: the detector's own) in `frame`. `hint_instances` replace
+        the hint segmenter's output (None: run it, when there is one); `roi` replaces the detector's region of
+        interest for this frame."""
+        templates = list(library) if library is not None else self.library
+        if not templates:
+            raise InputError("the cad segmenter needs a template library (pass one to CadDetector or to detect)")
+        opts = self.options
+        fopts = fit or FitOptions()
+        mopts = measure or MeasureOptions()
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        cam = frame.camera
+        depth = np.asarray(frame.depth_m, dtype=np.float64)
+        h, w = depth.shape
+        pmap = backproject_depth(cam, depth)
+        self._camera_k = np.asarray(cam.K, dtype=np.float64)
+        self._depth = np.ascontiguousarray(depth)
+        in_roi = self._roi_mask(frame, pmap, roi if roi is not None else self.roi)
+        timings["roi"] = _ms(t0)
+        hints = list(hint_instances) if hint_instances is not None else None
+        if hints is None and self.hints is not None:
+            t1 = time.perf_counter()
+            hints = self.hints.segment(frame)
+            timings["hints"] = _ms(t1)
+        preps = {t.name: prepare(t) for t in templates}
+        claimed = np.zeros(h * w, dtype=bool)
+        accepted: list[tuple[_Hyp, TemplateFit]] = []
+        ctx = FitContext(cam, depth)
+        wfc = cam.world_from_camera
+        rejected: list[tuple[str, FloatArray]] = []  # (template, posed centroid) of hypotheses that failed
+        n_hyp = n_ver = 0
+        t_vote = t_verify = 0.0
+        for rnd in range(opts.max_rounds):
+            t1 = time.perf_counter()
+            residual = in_roi & ~_dilate(claimed.reshape(h, w), 2).reshape(-1)
+            if residual.sum() < opts.min_pixels:
+                break
+            hyps = self._hypotheses(pmap, residual, templates, preps, hints if rnd == 0 else None)
+            n_hyp += len(hyps)
+            t_vote += time.perf_counter() - t1
+            t1 = time.perf_counter()
+            hyps.sort(key=lambda hy: len(hy.pixels) * hy.quality, reverse=True)
+            new = 0
+            tried = 0
+            for hy in hyps:
+                if tried >= opts.max_verify:
+                    break
+                fresh = ~claimed[hy.pixels]
+                n_fresh = int(fresh.sum())
+                if n_fresh < opts.min_pixels or n_fresh < opts.min_new_share * len(hy.pixels):
+                    continue
+                c_hy = hy.camera_from_object[:3, :3] @ hy.prep.centroid + hy.camera_from_object[:3, 3]
+                lim = 0.1 * hy.prep.diameter
+                if any(n == hy.template.name and np.linalg.norm(c - c_hy) < lim for n, c in rejected):
+                    continue  # the same hypothesis failed before (an earlier round)
+                tried += 1
+                # the fit sees every unclaimed ROI point near the pose, not only those it explains: points of
+                # another surface running through the hypothesis count against it
+                crop = self._explained(pmap, in_roi & ~claimed, hy.prep, hy.camera_from_object, 1.0, opts.crop_band_m)
+                mask = np.zeros(h * w, dtype=bool)
+                mask[crop] = True
+                mask[hy.pixels[fresh]] = True
+                inst = Instance(mask.reshape(h, w), hy.template.label, 1.0, len(accepted) + 1)
+                nps = measure_instances(frame, [inst], mopts)
+                if not nps:
+                    continue
+                start = hy.camera_from_object if wfc is None else wfc @ hy.camera_from_object
+                res = fit_template_from(nps[0], hy.template, start[None], fopts, ctx)
+                n_ver += 1
+                if not res.accepted or res.score < opts.min_score:
+                    rejected.append((hy.template.name, c_hy))
+                    continue
+                cfo = res.frame_from_object if wfc is None else invert_pose(wfc) @ res.frame_from_object
+                px = self._explained(pmap, in_roi, hy.prep, cfo, res.scale)
+                if len(px) < opts.min_pixels or np.mean(claimed[px]) > 1.0 - opts.min_new_share:
+                    continue
+                claimed[px] = True
+                accepted.append((replace(hy, camera_from_object=cfo, pixels=px), res))
+                new += 1
+            t_verify += time.perf_counter() - t1
+            if new == 0:
+                break
+        timings["vote"] = 1e3 * t_vote
+        timings["verify"] = 1e3 * t_verify
+        t1 = time.perf_counter()
+        out = self._instances(frame, accepted, mopts)
+        timings["masks"] = _ms(t1)
+        timings["total"] = _ms(t0)
+        return CadDetection(out[0], out[1], out[2], n_hyp, n_ver, timings)
+
+    # -- region of interest ------------------------------------------------------------------------
+    def _roi_mask(self, frame: RGBDFrame, pmap: FloatArray, roi: RegionOfInterest | None) -> BoolArray:
+        """(H * W,) pixels inside `roi` and off the support plane."""
+        opts = self.options
+        cam = frame.camera
+        pts = pmap.reshape(-1, 3)
+        z = pts[:, 2]
+        valid = z > 0.05
+        band = opts.plane_band_m + 2.5 * opts.noise_per_m2 * z**2
+        wfc = cam.world_from_camera
+        plane_c = None if roi is None or roi.plane_camera is None else np.asarray(roi.plane_camera, dtype=np.float64)
+        if plane_c is None and roi is not None and roi.plane_world is not None and wfc is not None:
+            plane_c = plane_in_camera(roi.plane_world, wfc)
+        if plane_c is None:
+            plane_c = _dominant_plane(pts[valid], band[valid])
+        keep = valid.copy()
+        if plane_c is not None:
+            n, d = plane_c[:3], plane_c[3]
+            # the side of the plane facing the camera (camera at the origin: n . 0 + d = d)
+            sign = 1.0 if d >= 0 else -1.0
+            keep &= sign * (pts @ n + d) > band
+        if roi is not None and roi.world_from_box is not None and roi.box_size is not None and wfc is not None:
+            box_from_camera = invert_pose(roi.world_from_box) @ wfc
+            pb = pts @ box_from_camera[:3, :3].T + box_from_camera[:3, 3]
+            half = np.asarray(roi.box_size, dtype=np.float64) / 2 - opts.wall_margin_m
+            keep &= np.all(np.abs(pb) <= half, axis=1)
+        return np.asarray(keep)
+
+    # -- hypotheses ---------------------------------------------------------------------------------
+    def _hypotheses(
+        self,
+        pmap: FloatArray,
+        residual: BoolArray,
+        templates: list[Template],
+        preps: dict[str, PreparedTemplate],
+        hints: list[Instance] | None,
+    ) -> list[_Hyp]:
+        opts = self.options
+        pts_all = pmap.reshape(-1, 3)
+        idx = np.flatnonzero(residual)
+        if len(idx) < 3:
+            return []
+        hint_px = None
+        hint_labels: set[str] = set()
+        if hints:
+            hint_px = np.zeros(len(pts_all), dtype=bool)
+            for hi in hints:
+                hint_px |= hi.mask.reshape(-1)
+                hint_labels.add(hi.label)
+        known = {t.label for t in templates} | {t.name for t in templates}
+        restrict = hint_labels <= known and "" not in hint_labels and bool(hint_labels)
+        clouds: dict[float, tuple[FloatArray, FloatArray, IntArray]] = {}
+        out: list[_Hyp] = []
+        for t in templates:
+            if restrict and not ({t.label, t.name} & hint_labels):
+                continue
+            prep = preps[t.name]
+            model = ppf.ppf_model(prep)
+            # one scene cloud per step class (steps snapped to powers of 1.25): few downsamplings per frame
+            voxel = float(1.25 ** np.round(np.log(model.step) / np.log(1.25)))
+            if voxel not in clouds:
+                clouds[voxel] = _downsample(pts_all[idx], idx, voxel)
+            sp, sn, spx = clouds[voxel]
+            if len(sp) < 10:
+                continue
+            refs = ppf.scene_references(len(sp), opts.ref_every)
+            if hint_px is not None:
+                inside = np.flatnonzero(hint_px[spx])
+                refs = inside[:: max(1, opts.ref_every // 2)] if len(inside) else refs
+            poses, votes = ppf.vote_poses(model, sp, sn, refs, opts.n_peaks)
+            if len(poses) == 0:
+                continue
+            cp, cv = ppf.cluster_poses(
+                poses, votes, prep.centroid, 0.1 * prep.diameter, np.deg2rad(15.0), opts.hypotheses, prep.sym
+            )
+            keep = _prescore(prep, cp, sp, opts.explain_tol_m, opts.noise_per_m2, opts.pull_in)
+            out.extend(self._pull_in(t, prep, cp[keep], cv[keep], sp, sn, pmap, residual))
+        return out
+
+    def _pull_in(
+        self,
+        template: Template,
+        prep: PreparedTemplate,
+        poses: FloatArray,
+        votes: FloatArray,
+        sp: FloatArray,
+        sn: FloatArray,
+        pmap: FloatArray,
+        residual: BoolArray,
+    ) -> list[_Hyp]:
+        """Each voted pose refined by ICP on the downsampled scene points near it, with the pixels it explains."""
+        opts = self.options
+        out = []
+        for pose, v in zip(poses, votes, strict=True):
+            c = pose[:3, :3] @ prep.centroid + pose[:3, 3]
+            near = np.linalg.norm(sp - c, axis=1) < 0.6 * prep.diameter
+            if near.sum() < 6:
+                continue
+            thr = np.maximum(opts.explain_tol_m, 2.5 * opts.noise_per_m2 * sp[near, 2] ** 2)
+            ofc, _, _ = icp(
+                prep,
+                invert_pose(pose)[None],
+                np.ones(1),
+                sp[near],
+                sn[near],
+                thr,
+                iterations=opts.icp_iterations,
+                exact=False,
+                fit_scale=False,
+                scale_tolerance=0.0,
+                max_corr_start=0.1 * prep.diameter,
+            )
+            cfo = invert_pose(ofc[0])
+            quality = self._evidence(prep, cfo)
+            if quality <= 0.0:
+                continue
+            px = self._explained(pmap, residual, prep, cfo, 1.0)
+            if len(px) >= opts.min_pixels:
+                out.append(_Hyp(template, prep, cfo, px, float(v), quality))
+        return out
+
+    def _evidence(self, prep: PreparedTemplate, cfo: FloatArray) -> float:
+        """Depth-image evidence of a pose in [0, 1] (0: implausible): the share of its camera-visible, unoccluded
+        surface that measured depth supports, minus 3 x the share the sensor saw through (free space); below
+        `min_support` support or above `max_see_through` see-through it is 0."""
+        opts = self.options
+        k = self._camera_k
+        pv, nv = kernels.visible_points(prep.samples, prep.normals, np.ascontiguousarray(cfo), 1.0, prep.spacing)
+        if len(pv) == 0:
+            return 0.0
+        uv = kernels.project_pinhole(pv, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        tol = opts.explain_tol_m + 2.5 * opts.noise_per_m2 * float(np.median(pv[:, 2])) ** 2
+        sup, den, vio, _mis, ng, _occ = kernels.depth_evidence(pv, nv, uv, self._depth, tol, 1)
+        support = sup / max(den, 1)
+        see = vio / max(ng, 1)
+        if support < opts.min_support or see > opts.max_see_through or den < 0.3 * len(pv):
+            return 0.0
+        return float(max(support - 3.0 * see, 0.0))
+
+    def _explained(
+        self,
+        pmap: FloatArray,
+        allowed: BoolArray,
+        prep: PreparedTemplate,
+        cfo: FloatArray,
+        scale: float,
+        band_m: float = 0.0,
+    ) -> IntArray:
+        """Flat indices of `allowed` pixels whose point lies within the explain tolerance (plus `band_m` metres)
+        of the posed model."""
+        opts = self.options
+        h, w = pmap.shape[:2]
+        c = cfo[:3, :3] @ (prep.centroid * scale) + cfo[:3, 3]
+        r = 0.5 * prep.diameter * scale * 1.1 + 0.005
+        if c[2] <= r * 0.5:
+            return np.zeros(0, dtype=np.int64)
+        # the sphere's pixel box (pinhole; distortion is small next to the margin)
+        k = self._camera_k
+        u0 = int(np.floor(k[0, 0] * (c[0] - r) / max(c[2] - r, 1e-3) + k[0, 2])) - 2
+        u1 = int(np.ceil(k[0, 0] * (c[0] + r) / max(c[2] - r, 1e-3) + k[0, 2])) + 2
+        v0 = int(np.floor(k[1, 1] * (c[1] - r) / max(c[2] - r, 1e-3) + k[1, 2])) - 2
+        v1 = int(np.ceil(k[1, 1] * (c[1] + r) / max(c[2] - r, 1e-3) + k[1, 2])) + 2
+        u0, u1, v0, v1 = max(u0, 0), min(u1, w), max(v0, 0), min(v1, h)
+        if u1 <= u0 or v1 <= v0:
+            return np.zeros(0, dtype=np.int64)
+        sub_ok = allowed.reshape(h, w)[v0:v1, u0:u1]
+        vv, uu = np.nonzero(sub_ok)
+        if len(vv) == 0:
+            return np.zeros(0, dtype=np.int64)
+        p = pmap[v0:v1, u0:u1][vv, uu]
+        ofc = invert_pose(cfo)
+        po = (p @ ofc[:3, :3].T + ofc[:3, 3]) / scale
+        near = np.linalg.norm(po - prep.centroid, axis=1) < r / scale
+        if not near.any():
+            return np.zeros(0, dtype=np.int64)
+        d, _ = prep.tree.query(po[near], distance_upper_bound=0.05 * prep.diameter + 0.01 + band_m)
+        tol = opts.explain_tol_m + band_m + 2.5 * opts.noise_per_m2 * p[near, 2] ** 2
+        ok = d * scale < tol
+        sel = np.flatnonzero(near)[ok]
+        return ((vv[sel] + v0) * w + (uu[sel] + u0)).astype(np.int64)
+
+    # -- output ---------------------------------------------------------------------------------
+    def _instances(
+        self, frame: RGBDFrame, accepted: list[tuple[_Hyp, TemplateFit]], mopts: MeasureOptions
+    ) -> tuple[list[Instance], list[NormPosition], list[TemplateFit]]:
+        from normpos_grasp.camera.render import render
+
+        if not accepted:
+            return [], [], []
+        cam = frame.camera
+        depth = np.asarray(frame.depth_m, dtype=np.float64)
+        posed = [(hy.template.mesh.copy().apply_scale(f.scale), hy.camera_from_object) for hy, f in accepted]
+        rend = render(cam, posed)
+        agree = np.abs(depth - rend.depth_m) < self.options.explain_tol_m * 3 + 2.5 * self.options.noise_per_m2 * (
+            depth**2
+        )
+        instances: list[Instance] = []
+        fits: list[TemplateFit] = []
+        for k, (hy, f) in enumerate(accepted):
+            mask = (rend.index == k) & agree & (depth > 0)
+            if mask.sum() < 3:
+                mask = np.zeros(depth.shape, dtype=bool)
+                mask.reshape(-1)[hy.pixels] = True
+            iid = len(instances) + 1
+            instances.append(Instance(mask, hy.template.label, float(np.clip(f.score, 0.0, 1.0)), iid))
+            fits.append(replace(f, instance_id=iid, extra={**f.extra, "detector": "cad", "ppf_votes": hy.votes}))
+        nps = measure_instances(frame, instances, mopts)
+        have = {n.instance_id for n in nps}
+        keep = [i for i, inst in enumerate(instances) if inst.instance_id in have]
+        return [instances[i] for i in keep], nps, [fits[i] for i in keep]
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _prescore(
+    prep: PreparedTemplate, poses: FloatArray, sp: FloatArray, tol_m: float, noise_per_m2: float, n_keep: int
+) -> IntArray:
+    """Indices of the (at most `n_keep`) voted poses explaining the most downsampled scene points (within tol of
+    the model surface, distance-grid lookup), those explaining under half the best one's dropped."""
+    if len(poses) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ofc = np.linalg.inv(poses)
+    po = np.einsum("kij,vj->kvi", ofc[:, :3, :3], sp) + ofc[:, None, :3, 3]
+    flat = po.reshape(-1, 3)
+    idx, inside = prep.grid_lookup(flat)
+    d = np.linalg.norm(flat - prep.samples[idx], axis=1).reshape(len(poses), -1)
+    tol = tol_m + 2.5 * noise_per_m2 * sp[:, 2] ** 2 + 0.5 * prep.grid_cell
+    count = ((d < tol[None, :]) & (inside.reshape(len(poses), -1) > 0)).sum(axis=1)
+    order = np.argsort(-count, kind="stable")[:n_keep]
+    return order[count[order] >= 0.5 * count[order[0]]]
+
+
+def _dilate(mask: BoolArray, px: int) -> BoolArray:
+    import cv2
+
+    if px <= 0 or not mask.any():
+        return mask
+    k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    return np.asarray(cv2.dilate(mask.view(np.uint8), k) > 0)
+
+
+def _downsample(pts: FloatArray, pix: IntArray, step: float) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Voxel means of (N, 3) points at `step` metres: points (V, 3), normals (V, 3) towards the camera at the
+    origin, and one pixel index per voxel (its first point's)."""
+    key = np.floor(pts / step).astype(np.int64)
+    _, first, inv, cnt = np.unique(key, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    mean = np.stack([np.bincount(inv, weights=pts[:, i]) for i in range(3)], axis=1) / cnt[:, None]
+    keep = cnt >= 2  # single stray pixels (flying pixels at edges) carry no surface
+    mean, first = mean[keep], first[keep]
+    if len(mean) < 10:
+        return mean, np.zeros_like(mean), pix[first]
+    nrm = estimate_normals(mean, np.zeros(3), k=10)
+    return mean, nrm, pix[first]
+
+
+def _dominant_plane(pts: FloatArray, band: FloatArray, iterations: int = 150) -> FloatArray | None:
+    """(4,) camera-frame plane with the most points within `band` (seeded RANSAC on a subsample), or None."""
+    if len(pts) < 100:
+        return None
+    rng = np.random.default_rng(0)
+    sub = rng.choice(len(pts), size=min(len(pts), 4000), replace=False)
+    p, b = pts[sub], band[sub]
+    best, best_n = None, 0
+    for _ in range(iterations):
+        tri = p[rng.choice(len(p), 3, replace=False)]
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        ln = float(np.linalg.norm(n))
+        if ln < 1e-12:
+            continue
+        n /= ln
+        d = -float(n @ tri[0])
+        k = int((np.abs(p @ n + d) < b).sum())
+        if k > best_n:
+            best, best_n = np.concatenate([n, [d]]), k
+    if best is None or best_n < 0.2 * len(p):
+        return None
+    return best

@@ -1,0 +1,343 @@
+"""Point-pair-feature voting (Drost, Ulrich, Navab, Ilic, CVPR 2010): template pose hypotheses in a whole scene cloud.
+
+The model: template surface samples on a grid of `step` (metres), every ordered pair within one diameter described
+by F(m1, m2) = (|d|, angle(n1, d), angle(n2, d), angle(n1, n2)), quantised (`step`, pi / n_angle) into a dense table
+of keys -> (first point, alpha_m), alpha_m the angle of m2 about the x axis once m1 sits at the origin with n1 along
++x. A scene reference point s_r votes, for each scene point s_j within one diameter, for every model pair with the
+same key: the model reference point m_r and the rotation alpha = alpha_s - alpha_m about x; the accumulator's peak
+gives camera_from_object = T_s^-1 Rx(alpha) T_m. Own implementation; the voting loop is compiled (numba, GIL
+released) like `templates.kernels`.
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from normpos_grasp.templates.features import voxel_downsample
+from normpos_grasp.templates.prepared import PreparedTemplate
+from normpos_grasp.typing import FloatArray, IntArray
+
+#: angle quantisation of the features and of alpha (pi / N_ANGLE and 2 pi / N_ALPHA radians)
+N_ANGLE = 30
+N_ALPHA = 30
+#: most model pairs stored under one feature key
+MAX_BUCKET = 24
+
+
+@dataclass(frozen=True, eq=False)
+class PPFModel:
+    """Point-pair table of one template (object frame, metres).
+
+    points / normals: (M, 3) model reference points and outward unit normals; step: distance quantum (metres);
+    n_dist: distance bins; offsets: (K + 1,) CSR start of each key's pairs; pair_ref: (P,) first point of each
+    pair; pair_alpha: (P,) alpha_m (radians); frames: (M, 4, 4) T_m (model point to origin, normal to +x).
+    """
+
+    points: FloatArray
+    normals: FloatArray
+    step: float
+    diameter: float
+    n_dist: int
+    offsets: IntArray
+    pair_ref: IntArray
+    pair_alpha: FloatArray
+    frames: FloatArray
+
+
+def ppf_step(diameter: float) -> float:
+    """The sampling step of a template of `diameter` metres: 5 % of it, at least 2.5 mm (scene noise)."""
+    return max(0.05 * diameter, 0.0025)
+
+
+_CACHE: weakref.WeakKeyDictionary[PreparedTemplate, PPFModel] = weakref.WeakKeyDictionary()
+_LOCK = threading.Lock()
+
+
+def ppf_model(prep: PreparedTemplate) -> PPFModel:
+    """The (cached, per prepared template) `PPFModel`."""
+    with _LOCK:
+        hit = _CACHE.get(prep)
+        if hit is None:
+            hit = _CACHE[prep] = _build(prep)
+        return hit
+
+
+def _build(prep: PreparedTemplate) -> PPFModel:
+    step = ppf_step(prep.diameter)
+    keep = voxel_downsample(prep.samples, step)
+    pts = np.ascontiguousarray(prep.samples[keep])
+    nrm = np.ascontiguousarray(prep.normals[keep])
+    n_dist = int(np.ceil(prep.diameter / step)) + 2
+    keys, refs, alphas = _model_pairs(pts, nrm, step, prep.diameter * 1.01, n_dist, N_ANGLE)
+    # flat and round surfaces put thousands of pairs under one key: they say little about the pose and would
+    # dominate the voting time, so a key keeps at most MAX_BUCKET pairs (a seeded, evenly drawn subset)
+    rng = np.random.default_rng(0)
+    order = np.lexsort((rng.random(len(keys)), keys))
+    ks = keys[order]
+    first = np.searchsorted(ks, ks, side="left")
+    order = order[np.arange(len(ks)) - first < MAX_BUCKET]
+    keys = keys[order]
+    n_keys = n_dist * N_ANGLE**3
+    counts = np.bincount(keys, minlength=n_keys)
+    offsets = np.zeros(n_keys + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    frames = np.stack([_frame_to_x(p, n) for p, n in zip(pts, nrm, strict=True)])
+    return PPFModel(pts, nrm, step, prep.diameter, n_dist, offsets, refs[order], alphas[order], frames)
+
+
+def _frame_to_x(p: FloatArray, n: FloatArray) -> FloatArray:
+    """(4, 4) rigid T with T p = 0 and R n = +x."""
+    r = _rot_to_x(n[0], n[1], n[2])
+    t = np.eye(4)
+    t[:3, :3] = r
+    t[:3, 3] = -r @ p
+    return t
+
+
+@numba.njit(cache=True, nogil=True)
+def _rot_to_x(n0, n1, n2):  # type: ignore[no-untyped-def]
+    """(3, 3) rotation taking the unit vector n onto +x (about the axis n x x)."""
+    r = np.eye(3)
+    c = n0
+    ax1, ax2 = n2, -n1  # n x x = (0, n2, -n1)
+    s = np.sqrt(ax1 * ax1 + ax2 * ax2)
+    if s < 1e-9:
+        if c < 0:
+            r[0, 0] = -1.0
+            r[1, 1] = -1.0  # rotation by pi about z
+        return r
+    k1, k2 = ax1 / s, ax2 / s
+    # Rodrigues with k = (0, k1, k2), angle with cos c, sin s
+    v = 1.0 - c
+    r[0, 0] = c
+    r[0, 1] = -k2 * s
+    r[0, 2] = k1 * s
+    r[1, 0] = k2 * s
+    r[1, 1] = c + k1 * k1 * v
+    r[1, 2] = k1 * k2 * v
+    r[2, 0] = -k1 * s
+    r[2, 1] = k1 * k2 * v
+    r[2, 2] = c + k2 * k2 * v
+    return r
+
+
+@numba.njit(cache=True, nogil=True)
+def _key(d0, d1, d2, dist, n1, n2, step, n_dist, n_angle):  # type: ignore[no-untyped-def]
+    """Quantised feature key of the pair (point 1 normal n1, point 2 normal n2, d = p2 - p1 of length dist)."""
+    inv = 1.0 / dist
+    u0, u1, u2 = d0 * inv, d1 * inv, d2 * inv
+    c1 = min(max(n1[0] * u0 + n1[1] * u1 + n1[2] * u2, -1.0), 1.0)
+    c2 = min(max(n2[0] * u0 + n2[1] * u1 + n2[2] * u2, -1.0), 1.0)
+    c3 = min(max(n1[0] * n2[0] + n1[1] * n2[1] + n1[2] * n2[2], -1.0), 1.0)
+    q = n_angle / np.pi
+    a1 = min(int(np.arccos(c1) * q), n_angle - 1)
+    a2 = min(int(np.arccos(c2) * q), n_angle - 1)
+    a3 = min(int(np.arccos(c3) * q), n_angle - 1)
+    qd = min(int(dist / step), n_dist - 1)
+    return ((qd * n_angle + a1) * n_angle + a2) * n_angle + a3
+
+
+@numba.njit(cache=True, nogil=True)
+def _model_pairs(pts, nrm, step, max_d, n_dist, n_angle):  # type: ignore[no-untyped-def]
+    m = pts.shape[0]
+    cnt = 0
+    for i in range(m):
+        for j in range(m):
+            if i != j:
+                d0 = pts[j, 0] - pts[i, 0]
+                d1 = pts[j, 1] - pts[i, 1]
+                d2 = pts[j, 2] - pts[i, 2]
+                dd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                if dd > 0.5 * step and dd <= max_d:
+                    cnt += 1
+    keys = np.empty(cnt, dtype=np.int64)
+    refs = np.empty(cnt, dtype=np.int32)
+    alphas = np.empty(cnt, dtype=np.float64)
+    k = 0
+    for i in range(m):
+        r = _rot_to_x(nrm[i, 0], nrm[i, 1], nrm[i, 2])
+        for j in range(m):
+            if i == j:
+                continue
+            d0 = pts[j, 0] - pts[i, 0]
+            d1 = pts[j, 1] - pts[i, 1]
+            d2 = pts[j, 2] - pts[i, 2]
+            dd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if dd <= 0.5 * step or dd > max_d:
+                continue
+            keys[k] = _key(d0, d1, d2, dd, nrm[i], nrm[j], step, n_dist, n_angle)
+            y = r[1, 0] * d0 + r[1, 1] * d1 + r[1, 2] * d2
+            z = r[2, 0] * d0 + r[2, 1] * d1 + r[2, 2] * d2
+            alphas[k] = np.arctan2(z, y)
+            refs[k] = i
+            k += 1
+    return keys, refs, alphas
+
+
+@numba.njit(cache=True, nogil=True)
+def _vote(  # type: ignore[no-untyped-def]
+    spts, snrm, ref_idx, offsets, pair_ref, pair_alpha, n_model, step, max_d, n_dist, n_angle, n_alpha, n_peaks
+):
+    """For each scene reference point: the `n_peaks` best (model point, alpha bin, votes) of its accumulator."""
+    nr = ref_idx.shape[0]
+    ns = spts.shape[0]
+    out_m = np.full((nr, n_peaks), -1, dtype=np.int64)
+    out_a = np.zeros((nr, n_peaks), dtype=np.int64)
+    out_v = np.zeros((nr, n_peaks), dtype=np.int64)
+    acc = np.zeros(n_model * n_alpha, dtype=np.int32)
+    touched = np.empty(n_model * n_alpha, dtype=np.int64)
+    two_pi = 2.0 * np.pi
+    for q in range(nr):
+        r_i = ref_idx[q]
+        p0, p1, p2 = spts[r_i, 0], spts[r_i, 1], spts[r_i, 2]
+        n1 = snrm[r_i]
+        rot = _rot_to_x(n1[0], n1[1], n1[2])
+        nt = 0
+        for j in range(ns):
+            if j == r_i:
+                continue
+            d0 = spts[j, 0] - p0
+            d1 = spts[j, 1] - p1
+            d2 = spts[j, 2] - p2
+            dd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if dd <= 0.5 * step or dd > max_d:
+                continue
+            key = _key(d0, d1, d2, dd, n1, snrm[j], step, n_dist, n_angle)
+            lo, hi = offsets[key], offsets[key + 1]
+            if lo == hi:
+                continue
+            y = rot[1, 0] * d0 + rot[1, 1] * d1 + rot[1, 2] * d2
+            z = rot[2, 0] * d0 + rot[2, 1] * d1 + rot[2, 2] * d2
+            a_s = np.arctan2(z, y)
+            for k in range(lo, hi):
+                a = a_s - pair_alpha[k]
+                a = a - two_pi * np.floor(a / two_pi)
+                ab = min(int(a / two_pi * n_alpha), n_alpha - 1)
+                cell = pair_ref[k] * n_alpha + ab
+                if acc[cell] == 0:
+                    touched[nt] = cell
+                    nt += 1
+                acc[cell] += 1
+        for t in range(nt):
+            cell = touched[t]
+            v = acc[cell]
+            # insert into the per-reference top list (sorted descending)
+            if v > out_v[q, n_peaks - 1]:
+                pos = n_peaks - 1
+                while pos > 0 and out_v[q, pos - 1] < v:
+                    out_v[q, pos] = out_v[q, pos - 1]
+                    out_m[q, pos] = out_m[q, pos - 1]
+                    out_a[q, pos] = out_a[q, pos - 1]
+                    pos -= 1
+                out_v[q, pos] = v
+                out_m[q, pos] = cell // n_alpha
+                out_a[q, pos] = cell % n_alpha
+        for t in range(nt):
+            acc[touched[t]] = 0
+    return out_m, out_a, out_v
+
+
+def vote_poses(
+    model: PPFModel,
+    scene_points: FloatArray,
+    scene_normals: FloatArray,
+    ref_idx: IntArray,
+    n_peaks: int = 2,
+) -> tuple[FloatArray, FloatArray]:
+    """Pose hypotheses of `model` in a scene cloud ((N, 3) points, (N, 3) unit normals facing the sensor).
+
+    ref_idx: (R,) scene reference points. Returns (R * n_peaks, 4, 4) scene_from_object poses and their (R *
+    n_peaks,) votes (0 where a reference point had fewer peaks).
+    """
+    spts = np.ascontiguousarray(scene_points, dtype=np.float64)
+    snrm = np.ascontiguousarray(scene_normals, dtype=np.float64)
+    refs = np.ascontiguousarray(ref_idx, dtype=np.int64)
+    if len(refs) == 0 or len(spts) < 3:
+        return np.zeros((0, 4, 4)), np.zeros(0)
+    out_m, out_a, out_v = _vote(
+        spts,
+        snrm,
+        refs,
+        model.offsets,
+        model.pair_ref,
+        model.pair_alpha,
+        len(model.points),
+        model.step,
+        model.diameter * 1.01,
+        model.n_dist,
+        N_ANGLE,
+        N_ALPHA,
+        n_peaks,
+    )
+    ok = out_m.reshape(-1) >= 0
+    ref_rep = np.repeat(refs, n_peaks)[ok]
+    mi = out_m.reshape(-1)[ok]
+    alpha = (out_a.reshape(-1)[ok] + 0.5) * (2.0 * np.pi / N_ALPHA)
+    votes = out_v.reshape(-1)[ok].astype(np.float64)
+    # T_s: scene reference point to the origin, its normal to +x
+    ts = np.stack([_frame_to_x(spts[i], snrm[i]) for i in ref_rep]) if len(ref_rep) else np.zeros((0, 4, 4))
+    rx = np.tile(np.eye(4), (len(alpha), 1, 1))
+    c, s = np.cos(alpha), np.sin(alpha)
+    rx[:, 1, 1], rx[:, 1, 2], rx[:, 2, 1], rx[:, 2, 2] = c, -s, s, c
+    ts_inv = np.tile(np.eye(4), (len(ts), 1, 1))
+    ts_inv[:, :3, :3] = np.transpose(ts[:, :3, :3], (0, 2, 1))
+    ts_inv[:, :3, 3] = -np.einsum("nji,nj->ni", ts[:, :3, :3], ts[:, :3, 3])
+    poses = ts_inv @ rx @ model.frames[mi]
+    return poses, votes
+
+
+def cluster_poses(
+    poses: FloatArray,
+    votes: FloatArray,
+    centroid: FloatArray,
+    dist_m: float,
+    angle_rad: float,
+    n_max: int,
+    symmetries: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Greedy pose clustering (highest votes first): each unassigned pose with the most votes gathers the
+    unassigned poses whose posed object `centroid` lies within `dist_m` (metres) and whose rotation differs by
+    less than `angle_rad` from it or from one of its symmetric copies (`symmetries`, (M, 4, 4) object_from_object;
+    the votes of a symmetric part spread over its equivalent poses); clusters are scored by their summed votes and
+    represented by their best pose. Returns the `n_max` best (K, 4, 4) poses and (K,) cluster votes."""
+    order = np.argsort(-votes, kind="stable")
+    order = order[votes[order] > 0]
+    if len(order) == 0:
+        return np.zeros((0, 4, 4)), np.zeros(0)
+    p = poses[order]
+    v = votes[order]
+    centres = p[:, :3, :3] @ centroid + p[:, :3, 3]
+    rot = p[:, :3, :3].reshape(len(p), 9)
+    sym_r = np.eye(3)[None] if symmetries is None or len(symmetries) == 0 else symmetries[:, :3, :3]
+    free = np.ones(len(p), dtype=bool)
+    cos_lim = 1.0 + 2.0 * np.cos(angle_rad)  # trace(Ra Rb^T) above this: closer than angle_rad
+    reps: list[int] = []
+    total: list[float] = []
+    for i in range(len(p)):
+        if not free[i]:
+            continue
+        cand = np.flatnonzero(free)
+        near = np.linalg.norm(centres[cand] - centres[i], axis=1) < dist_m
+        cand = cand[near]
+        equiv = (p[i, :3, :3] @ sym_r).reshape(-1, 9)  # (M, 9) the rotation's symmetric copies
+        near = np.max(rot[cand] @ equiv.T, axis=1) > cos_lim
+        members = cand[near]
+        free[members] = False
+        free[i] = False
+        reps.append(i)
+        total.append(float(v[members].sum()) + (0.0 if i in members else float(v[i])))
+        if len(reps) >= 4 * n_max:
+            break
+    tv = np.asarray(total)
+    best = np.argsort(-tv, kind="stable")[:n_max]
+    return p[np.asarray(reps)[best]], tv[best]
+
+
+def scene_references(n: int, every: int) -> IntArray:
+    """Every `every`-th scene point as a reference point."""
+    return np.arange(0, n, max(1, every), dtype=np.int64)

@@ -1,0 +1,138 @@
+"""CAD detection in the whole region of interest (`--segmenter cad`): PPF voting, the detector, factory, pipeline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from normpos_grasp.errors import InputError
+from normpos_grasp.perception.cad_detector import CadDetector, CadOptions, RegionOfInterest
+from normpos_grasp.perception.factory import choose_segmenter
+from normpos_grasp.sim.parts import default_part_library
+from normpos_grasp.templates import ppf
+from normpos_grasp.templates.prepared import prepare
+
+
+def _sym_add(template, est, gt) -> float:  # type: ignore[no-untyped-def]
+    prep = prepare(template)
+    sub = prep.samples[::4]
+    pe = sub @ est[:3, :3].T + est[:3, 3]
+    best = np.inf
+    for s in template.symmetry.transforms(continuous_steps=72):
+        g = gt @ s
+        best = min(best, float(np.mean(np.linalg.norm(pe - (sub @ g[:3, :3].T + g[:3, 3]), axis=1))))
+    return best
+
+
+@pytest.mark.parametrize("name", ["box", "bracket", "cylinder"])
+def test_ppf_voting_recovers_a_posed_view(name: str) -> None:
+    t = {p.name: p for p in default_part_library()}[name]
+    prep = prepare(t)
+    model = ppf.ppf_model(prep)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("xyz", [30, -50, 110], degrees=True).as_matrix()
+    pose[:3, 3] = [0.02, -0.01, 0.6]
+    pts = prep.samples @ pose[:3, :3].T + pose[:3, 3]
+    nrm = prep.normals @ pose[:3, :3].T
+    seen = np.einsum("ij,ij->i", nrm, -pts) > 0  # faces towards the camera at the origin
+    keep = ppf.voxel_downsample(pts[seen], model.step)
+    rng = np.random.default_rng(3)
+    sp = pts[seen][keep] + rng.normal(0.0, 0.0005, (len(keep), 3))
+    poses, votes = ppf.vote_poses(model, sp, nrm[seen][keep], ppf.scene_references(len(sp), 4))
+    best, _ = ppf.cluster_poses(poses, votes, prep.centroid, 0.1 * prep.diameter, np.deg2rad(15), 3, prep.sym)
+    assert len(best) >= 1
+    # the best-voted cluster is the view's pose, up to the part's symmetry (before any ICP)
+    assert _sym_add(t, best[0], pose) < 0.1 * prep.diameter
+
+
+def test_cluster_poses_merges_symmetric_copies() -> None:
+    t = {p.name: p for p in default_part_library()}["cylinder"]
+    prep = prepare(t)
+    base = np.eye(4)
+    base[:3, 3] = [0.0, 0.0, 0.5]
+    turned = base.copy()
+    turned[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()  # about the cylinder axis
+    poses, votes = np.stack([base, turned]), np.array([5.0, 4.0])
+    merged, mv = ppf.cluster_poses(poses, votes, prep.centroid, 0.01, np.deg2rad(10), 5, prep.sym)
+    apart, av = ppf.cluster_poses(poses, votes, prep.centroid, 0.01, np.deg2rad(10), 5, None)
+    assert len(merged) == 1 and mv[0] == 9.0
+    assert len(apart) == 2
+
+
+@pytest.fixture(scope="module")
+def scene():  # type: ignore[no-untyped-def]
+    from normpos_grasp.sim.cameras import CameraOptions
+    from normpos_grasp.sim.dataset import generate_frame
+    from normpos_grasp.sim.scene import SceneOptions
+
+    lib = default_part_library()
+    parts = [t for t in lib if t.name in ("box", "bracket", "cylinder", "plate")]
+    so = SceneOptions(count=3, seed=21, clutter=0.0)
+    sf = generate_frame(so, "d435", CameraOptions(distance_m=(0.55, 0.6), tilt_deg=(0, 10)), seed=4, library=parts)
+    ix, iy = so.bin_inner_size_m
+    f = so.bin_floor_thickness_m
+    box = np.eye(4)
+    box[2, 3] = f + 0.12
+    roi = RegionOfInterest(np.array([0.0, 0.0, 1.0, -f]), box, np.array([ix, iy, 0.24]))
+    return sf, parts, roi
+
+
+def test_detector_finds_the_parts_without_masks(scene) -> None:  # type: ignore[no-untyped-def]
+    sf, parts, roi = scene
+    det = CadDetector(parts, roi).detect(sf.frame)
+    assert len(det.instances) == len(det.fits) == len(det.normpositions) >= 2
+    right = 0
+    for fit, inst, n in zip(det.fits, det.instances, det.normpositions, strict=True):
+        assert fit.accepted and fit.instance_id == inst.instance_id == n.instance_id
+        assert inst.label == fit.template.label and inst.mask.any()
+        errs = [
+            _sym_add(t, fit.frame_from_object, sf.world_from_object[k])
+            for k, t in enumerate(sf.layout.templates)
+            if t.name == fit.template.name
+        ]
+        assert errs, f"{fit.template.name} accepted but not in the scene"
+        assert min(errs) < 0.1 * prepare(fit.template).diameter  # every accepted pose is right
+        right += 1
+    visible = [k for k in range(len(sf.layout.templates)) if sf.visib_fractions[k] >= 0.5]
+    assert right >= len(visible) - 1
+
+
+def test_detection_is_deterministic_and_leaves_the_frame(scene) -> None:  # type: ignore[no-untyped-def]
+    sf, parts, roi = scene
+    depth = sf.frame.depth_m.copy()
+    a = CadDetector(parts, roi).detect(sf.frame)
+    b = CadDetector(parts, roi).detect(sf.frame)
+    assert np.array_equal(depth, sf.frame.depth_m)
+    assert [f.template.name for f in a.fits] == [f.template.name for f in b.fits]
+    for fa, fb in zip(a.fits, b.fits, strict=True):
+        assert np.allclose(fa.frame_from_object, fb.frame_from_object)
+
+
+def test_pipeline_takes_the_detected_poses(scene) -> None:  # type: ignore[no-untyped-def]
+    from normpos_grasp.pipeline import perceive
+
+    sf, parts, roi = scene
+    res = perceive(sf.frame, CadDetector(roi=roi), parts)
+    assert res.fits and all(f.accepted for f in res.fits)
+    assert [f.instance_id for f in res.fits] == [n.instance_id for n in res.normpositions]
+    assert res.timings_ms["fit"] == 0.0  # not fitted again
+
+
+def test_cad_needs_a_library_and_valid_options(scene) -> None:  # type: ignore[no-untyped-def]
+    sf, _, roi = scene
+    with pytest.raises(InputError, match="template library"):
+        CadDetector(roi=roi).segment(sf.frame)
+    with pytest.raises(InputError):
+        CadOptions(min_new_share=0.0)
+
+
+def test_factory_registers_cad_and_auto_falls_back_to_it() -> None:
+    lib = default_part_library()
+    choice = choose_segmenter("cad", library=lib)
+    assert choice.kind == "cad" and isinstance(choice.segmenter, CadDetector)
+    assert choice.segmenter.library is not None and len(choice.segmenter.library) == len(lib)
+    pytest.importorskip("onnxruntime")
+    auto = choose_segmenter("auto", labels={"nut_m12"}, library=lib)  # a label the bundled model does not know
+    assert auto.kind == "cad"
+    assert choose_segmenter("auto", labels={"nut_m12"}).kind == "depth"  # no library: the depth segmenter
