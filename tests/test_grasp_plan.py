@@ -399,8 +399,20 @@ def test_vertical_prism_grasps_only_for_tilted_prisms() -> None:
     assert vertical_prism_grasps(cube, bar_pose, opts) == []
 
 
-@pytest.mark.parametrize("rolled", [False, True])
-def test_leaning_bar_gets_a_vertical_grasp(bin_cell: CellConfig, rolled: bool) -> None:
+def test_rolled_bar_vertical_pinch_refused_by_the_grip_mechanics(bin_cell: CellConfig) -> None:
+    # rolled 22 degrees about its long axis, a straight-down pinch closes on two edges: the squeeze turns the bar
+    # in the jaws (MuJoCo: 12 degrees, a slip), so the mechanics refuse it and say why
+    bar, bar_pose, block, block_pose = _leaning_bar(rolled=True)
+    plan = plan_pick([_fit(bar, bar_pose, 1), _fit(block, block_pose, 2)], [], bin_cell, _all_options())
+    vertical = [
+        e for e in plan.evaluations if e.candidate.target == 0 and e.candidate.grasp_id.startswith("vert_prism")
+    ]
+    assert vertical and all(not e.feasible for e in vertical)
+    assert {e.reason for e in vertical} <= {"friction_cone", "collision_cell", "collision_object"}
+    assert any(e.reason == "friction_cone" for e in vertical)
+
+
+def test_leaning_bar_gets_a_vertical_grasp(bin_cell: CellConfig, rolled: bool = False) -> None:
     bar, bar_pose, block, block_pose = _leaning_bar(rolled)
     fits = [_fit(bar, bar_pose, 1), _fit(block, block_pose, 2)]
     plan = plan_pick(fits, [], bin_cell, _all_options())

@@ -38,7 +38,10 @@ class CandidateOptions:
     symmetric: carry every grasp through the template's symmetries (`symmetric_grasps`), so a part fitted in any
     equivalent pose keeps all of its grasps: annotated grasps through the discrete group combined with each
     continuous axis sampled in `symmetry_steps` turns, synthesized ones through the discrete group (synthesis
-    already samples around continuous axes; an image within `SYNTHESIZED_TOLERANCE` of a sampled grasp is dropped)."""
+    already samples around continuous axes; an image within `SYNTHESIZED_TOLERANCE` of a sampled grasp is dropped).
+    level_within_rad: grasps approaching within this angle of straight down (but not straight down) are also offered
+    levelled (`level_candidates`, `@level` in the id): a plate fitted 2 degrees off flat keeps its fingertips level
+    above the floor; 0: off."""
 
     free_axis_steps: int = 8
     tilt_steps: int = 4
@@ -48,6 +51,7 @@ class CandidateOptions:
     vertical_prism: bool = True
     symmetric: bool = True
     symmetry_steps: int = 4
+    level_within_rad: float = float(np.deg2rad(8.0))
 
 
 def expand_annotation(g: GraspAnnotation, options: CandidateOptions) -> list[tuple[str, FloatArray]]:
@@ -479,6 +483,8 @@ def candidates_for_object(
                 out.append(
                     GraspCandidate(target, name, f"{gid}@align{m}", source, g.scheme, aligned[0][k, m], *fields[6:])
                 )
+    if opts.level_within_rad > 0:
+        out.extend(level_candidates(out, opts.level_within_rad))
     if opts.vertical_prism and tool_kind == "parallel" and opts.synthesize != "never":
         syn = opts.synthesis
         for gid, pose, opening, quality in vertical_prism_grasps(template, world_from_object, syn):
@@ -487,6 +493,43 @@ def candidates_for_object(
                     target, name, gid, "synthesized", "parallel", pose, opening, syn.approach_m, syn.retreat_m, quality
                 )
             )
+    return out
+
+
+def level_candidates(candidates: list[GraspCandidate], within_rad: float) -> list[GraspCandidate]:
+    """Copies (`@level` in the id) of the candidates approaching within `within_rad` of straight down, but more
+    than 0.5 degrees off it, turned about their TCP so that they approach straight down: the closing axis stays
+    perpendicular to the approach, in the plane it shared with it. A part fitted a few degrees off flat (fit noise on a
+    plate lying on the floor) then meets level fingertips, which clear the floor at the same depth everywhere; the
+    grip mechanics judge the pads against the slightly tilted faces."""
+    out: list[GraspCandidate] = []
+    down = np.array([0.0, 0.0, -1.0])
+    lo = np.cos(within_rad)
+    hi = np.cos(np.deg2rad(0.5))
+    for c in candidates:
+        pose = c.world_from_tcp
+        cos_a = float(pose[:3, 2] @ down)
+        if not lo <= cos_a < hi:
+            continue
+        axis = np.cross(pose[:3, 2], down)
+        axis /= np.linalg.norm(axis)
+        turn = _about(axis, pose[:3, 3], float(np.arccos(np.clip(cos_a, -1.0, 1.0))))
+        level = turn @ pose
+        out.append(
+            GraspCandidate(
+                c.target,
+                c.template,
+                f"{c.grasp_id}@level",
+                c.source,
+                c.scheme,
+                level,
+                c.opening_m,
+                c.approach_m,
+                c.retreat_m,
+                c.quality,
+                c.priority,
+            )
+        )
     return out
 
 

@@ -3,8 +3,9 @@
 Cheap vectorised tests run on every candidate first (approach angle, stroke, workspace, IK at the grasp pose over
 all analytic branches); collision checks then run in prior order with early exits, stopping once enough feasible
 grasps are found. Every rejected candidate keeps its reason: 'approach_angle', 'stroke', 'workspace', 'ik',
-'joint_limits', 'collision_<what>' (cell, object, clutter, self), 'payload'; candidates never reached by the collision
-stage are counted as 'not_evaluated'.
+'joint_limits', 'collision_<what>' (cell, object, clutter, self), 'payload', the grip mechanics' reasons
+('friction_cone', 'pad_contact', 'slip_torque', 'seal', 'suction_load', 'suction_torque', `grasp.quality`);
+candidates never reached by the collision stage are counted as 'not_evaluated'.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.grasp.quality import QualityOptions, judge
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.plan import Evaluation, Target
@@ -47,12 +49,15 @@ class EvaluationOptions:
     approach (fitted poses are off by millimetres: fingertips keep this margin above the bin floor), m.
     max_raise_m / raise_step_m: a parallel grasp whose fingers hit the cell (floor) at the grasp is raised back
     along the approach in these steps up to this far, m, as long as the jaw tips still reach `min_contact_m` (or
-    40 % of the part's depth along the approach, if less) past the part's approached face (m); the raised grasp
+    `min_contact_share` of the part's depth along its box axis nearest the approach, if less: 3.2 mm of an 8 mm
+    plate) past the part's approached face (m); the pad contact itself is judged by `grasp.quality`; the raised grasp
     replaces the candidate. opening_slack_m: a parallel grasp
     whose opening (part width + synthesis clearance) exceeds the stroke by at most this much is opened to the full
     stroke instead (less clearance beside the part; the collision checks still decide), m. Weights of the ranking
     score: quality, approach (vertical approach preferred), travel (joint distance from home, per rad),
-    priority (template priority), clearance, height (higher objects first, per m).
+    priority (template priority), clearance, height (higher objects first, per m). mechanics: grip mechanics
+    (`grasp.quality`): candidates it predicts to slip, turn or lose the seal are rejected with its reason, and its
+    predicted success is the quality term of the ranking (None: the synthesis' geometric quality, no check).
     """
 
     max_approach_up: float = 0.2
@@ -72,7 +77,9 @@ class EvaluationOptions:
     max_raise_m: float = 0.016
     raise_step_m: float = 0.001
     min_contact_m: float = 0.005
+    min_contact_share: float = 0.4
     opening_slack_m: float = 0.012
+    mechanics: QualityOptions | None = QualityOptions()
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,11 +224,23 @@ def evaluate_candidates(
             for j in idx[hits]:
                 reject(int(j), "collision_cell", POSE_NAMES[p_idx])
             idx = idx[np.logical_not(hits)]
+    # mechanics on the fitted template (friction cones, pad area, weight and torque; the cup's seal and load):
+    # candidates that will not hold are rejected; the predicted success of the rest replaces the geometric quality
+    success = np.array([c.quality for c in candidates])
+    if opts.mechanics is not None:
+        for j in idx:
+            c = candidates[int(j)]
+            t = targets[c.target]
+            mech = judge(c.scheme, t.mesh, t.mass_kg, t.world_from_object, g[int(j)], tool, opts.mechanics)
+            if not mech.ok:
+                reject(int(j), mech.reason, "grasp")
+            else:
+                success[int(j)] = mech.success
     # 2. prior order: object height, grasp quality, approach angle, priority
     heights = np.array([targets[c.target].height_m for c in candidates])
     prior = (
         opts.w_height * heights
-        + opts.w_quality * np.array([c.quality for c in candidates])
+        + opts.w_quality * success
         + opts.w_approach * (-approach[:, 2])
         + opts.w_priority * np.array([c.priority for c in candidates])
     )
@@ -348,8 +367,12 @@ def _raise_grasps(
         verts = verts + tgt.world_from_object[:3, 3]
         along = approach[todo[rows]] @ verts.T
         face[rows] = along.min(axis=1)
-        # thin parts: the jaws must reach down at least 40 % of the part's depth along the approach
-        need[rows] = np.minimum(opts.min_contact_m, 0.4 * (along.max(axis=1) - along.min(axis=1)))
+        # thin parts: the jaws must reach down `min_contact_share` of the part's depth along the approach, the depth
+        # measured along the template box axis nearest the approach (a plate fitted 2 degrees off flat is still
+        # 8 mm thick under the jaws, not 8 mm plus the rise of its far corners)
+        lo_b, hi_b = np.asarray(tgt.mesh.bounds, dtype=np.float64)  # type: ignore[attr-defined]
+        axis_depth = np.abs(approach[todo[rows]] @ tgt.world_from_object[:3, :3]) * (hi_b - lo_b)
+        need[rows] = np.minimum(opts.min_contact_m, opts.min_contact_share * axis_depth.max(axis=1))
     tip_depth = np.einsum("ni,ni->n", g[todo, :3, 3], approach[todo]) + tip - face - need
     # smallest clear raise in whole steps, by bisection (raising along the approach only moves the tips off the
     # surface underneath): the largest allowed raise first, then halving the bracket of each candidate at once

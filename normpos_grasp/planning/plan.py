@@ -52,6 +52,8 @@ class PlanOptions:
     clutter_min_points: measured points no fit explains become clutter only where at least this many of them (the
     point itself included) lie within the cell's voxel size: lone points are sensor outliers (flying pixels at
     depth edges), not obstacles.
+    neighbour_tolerance_m: points of one instance that lie inside ANOTHER accepted fit's template box grown by this
+    much are that neighbour's (a mask that bled across the border between touching parts), not clutter, m.
     """
 
     cartesian_step_m: float = 0.01
@@ -62,6 +64,7 @@ class PlanOptions:
     release_tolerance_m: float = 0.01
     max_plan_attempts: int = 12
     clutter_min_points: int = 3
+    neighbour_tolerance_m: float = 0.003
     candidates: CandidateOptions = CandidateOptions()
     evaluation: EvaluationOptions = EvaluationOptions()
     motion: MotionOptions = MotionOptions()
@@ -132,6 +135,11 @@ def build_world(
             )
             templates.append(template)
             continue
+        # a mask that bled over a touching neighbour: those points are explained by the neighbour's fit (left as
+        # clutter they sit inside that part and block every lift of it)
+        others = [t for t in targets if t.instance_id != np_.instance_id]
+        if len(pts) and others:
+            pts = _unexplained(pts, others, opts.neighbour_tolerance_m)
         pts = _drop_outliers(pts, cell.voxel_m, opts.clutter_min_points)
         if len(pts):
             world.add_points(f"clutter/{np_.instance_id}", pts, cell.voxel_m, "clutter")
@@ -547,3 +555,108 @@ def _build_path(
     ]
     pieces += [PathPiece(seg_place, tcp_place, rest_after=True), PathPiece(seg_post, tcp_post, rest_after=True)]
     return waypoints, pieces, place.name
+
+
+#: how far a rejected candidate got, cheapest test first: the closest call is the one rejected latest
+_STAGE_ORDER = (
+    "not_evaluated",
+    "approach_angle",
+    "stroke",
+    "payload",
+    "workspace",
+    "collision_cell",
+    "friction_cone",
+    "pad_contact",
+    "slip_torque",
+    "seal",
+    "suction_load",
+    "suction_torque",
+    "ik",
+    "joint_limits",
+    "collision",
+    "path",
+    "place",
+)
+
+
+def _stage_rank(reason: str) -> int:
+    if reason in _STAGE_ORDER:
+        return _STAGE_ORDER.index(reason)
+    for k in range(len(_STAGE_ORDER) - 1, -1, -1):
+        if reason.startswith(_STAGE_ORDER[k] + "_"):
+            return k
+    return 0
+
+
+@dataclass(frozen=True)
+class TargetRejections:
+    """Why one perceived object got no grasp: its target name and template, rejection counts by reason, and the
+    closest call (the rejected candidate that passed the most tests; ties by its quality): id, scheme, reason, the
+    pose it failed at, and its world_from_tcp (4, 4)."""
+
+    target: str
+    template: str
+    counts: dict[str, int]
+    best_id: str
+    best_scheme: str
+    best_reason: str
+    best_pose: str
+    best_world_from_tcp: FloatArray
+    best_opening_m: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "target": self.target,
+            "template": self.template,
+            "rejected_by_reason": dict(sorted(self.counts.items())),
+            "best_rejected": {
+                "id": self.best_id,
+                "scheme": self.best_scheme,
+                "reason": self.best_reason,
+                "pose": self.best_pose,
+                "world_from_tcp": np.asarray(self.best_world_from_tcp).tolist(),
+                "opening_m": self.best_opening_m,
+            },
+        }
+
+
+def rejections_by_target(plan: PickPlan) -> list[TargetRejections]:
+    """Per target of `plan` (in target order; targets without candidates left out): counts and the closest call."""
+    per: dict[int, list[Evaluation]] = {}
+    for ev in plan.evaluations:
+        if not ev.feasible:
+            per.setdefault(ev.candidate.target, []).append(ev)
+    out = []
+    for k, evs in sorted(per.items()):
+        best = max(evs, key=lambda e: (_stage_rank(e.reason), e.candidate.quality))
+        target = plan.targets[k]
+        out.append(
+            TargetRejections(
+                target.name,
+                target.template,
+                dict(Counter(e.reason for e in evs)),
+                best.candidate.grasp_id,
+                best.candidate.scheme,
+                best.reason,
+                best.pose,
+                np.asarray(best.candidate.world_from_tcp, dtype=np.float64),
+                float(best.candidate.opening_m),
+            )
+        )
+    return out
+
+
+def stop_line(plan: PickPlan, max_reasons: int = 3) -> str:
+    """One line saying why `plan` found no grasp: the parts left and, for each, its commonest rejection reasons
+    and the closest call."""
+    rows = rejections_by_target(plan)
+    if not plan.targets:
+        return "no feasible grasp: no accepted template fit to pick (nothing perceived as a known part)"
+    parts = []
+    for r in rows:
+        top = sorted(r.counts.items(), key=lambda kv: (-kv[1], kv[0]))[:max_reasons]
+        reasons = ", ".join(f"{k} {v}" for k, v in top)
+        closest = f"closest {r.best_id} ({r.best_reason}" + (f" at {r.best_pose})" if r.best_pose else ")")
+        parts.append(f"{r.template or r.target}: {reasons}; {closest}")
+    names = ", ".join(t.template or t.name for t in plan.targets)
+    return f"no feasible grasp for {len(plan.targets)} part(s) left ({names}): " + " | ".join(parts)

@@ -121,3 +121,71 @@ def plan_push(
                 if all(world.check_tool(p, 0.0, skip=("object", "clutter")) is None for p in along):
                     return Push(start, d * dist)
     return None
+
+
+def push_motion(
+    push: Push,
+    fits: Sequence[TemplateFit],
+    normpositions: Sequence[NormPosition],
+    cell: CellConfig,
+    start_q: FloatArray,
+    rise_m: float = 0.08,
+) -> FloatArray:
+    """Joint waypoints (K, 6) rad that carry out `push` with the closed gripper from `start_q`: a joint-space move
+    (straight when clear, else RRT-Connect) to `rise_m` above the push's start, then straight TCP lines (IK every
+    `PlanOptions.cartesian_step_m` on one branch) down to the start, along the push and up by `rise_m`. The arm is
+    checked against the perceived world all along, the tool too until the push starts (then against the cell only:
+    it touches the parts it moves). Raises PlanningError (with a reason) when some piece has no path."""
+    from normpos_grasp.errors import PlanningError
+    from normpos_grasp.geometry.transforms import invert_pose
+    from normpos_grasp.planning.plan import _ConfigFree, _line, _PathRejected
+    from normpos_grasp.planning.rrt import plan_joint_motion
+
+    opts = PlanOptions()
+    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
+    world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
+    world.set_arm(arm)
+    world.set_tool(cell.tool)
+    world.update()
+    tcp_from_flange = invert_pose(cell.tool.flange_from_tcp)
+    start = np.asarray(push.world_from_tcp, dtype=np.float64)
+    above = start.copy()
+    above[2, 3] += rise_m
+    end = start.copy()
+    end[:3, 3] += np.asarray(push.push, dtype=np.float64)
+    end_up = end.copy()
+    end_up[2, 3] += rise_m
+    q0 = np.asarray(start_q, dtype=np.float64)
+    q_above, ok = arm.ik(above @ tcp_from_flange, q0)
+    branches = np.flatnonzero(ok[0])
+    if len(branches) == 0:
+        raise _PathRejected("push: the pose above the push is out of reach", "push_ik")
+    branches = branches[np.argsort(np.abs(q_above[0, branches] - q0).sum(axis=1))]
+    free = _ConfigFree(world, 0.0)
+    last: PlanningError = _PathRejected("push: no branch", "push_ik")
+    for b in branches:
+        try:
+            down, _ = _line(arm, tcp_from_flange, above, start, q_above[0, b], int(b), opts)
+            along, _ = _line(arm, tcp_from_flange, start, end, down[-1], int(b), opts)
+            up, _ = _line(arm, tcp_from_flange, end, end_up, along[-1], int(b), opts)
+        except _PathRejected as exc:
+            last = exc
+            continue
+        if not all(free(q) for q in down[1:]):
+            last = _PathRejected("push: collision on the way down", "push_collision")
+            continue
+        # along the push and on the way up the tool touches the parts it moved (the perceived world no longer
+        # holds where they are): the tool is checked against the cell only, the arm against everything
+        pushing = np.vstack([along, up[1:]])
+        if any(world.check_arm(q) is not None for q in pushing) or any(
+            world.check_config(q, 0.0, skip=("object", "clutter")) is not None for q in pushing
+        ):
+            last = _PathRejected("push: collision along the push or on the way up", "push_collision")
+            continue
+        try:
+            transfer = plan_joint_motion(q0, down[0], free, arm.lower, arm.upper, opts.motion)
+        except PlanningError as exc:
+            last = _PathRejected(f"push: no joint path to the push: {exc}", "push_transfer")
+            continue
+        return np.vstack([np.asarray(transfer)[1:], down[1:], along[1:], up[1:]])
+    raise last
