@@ -44,8 +44,8 @@ LAYERS: tuple[str, ...] = (
     # stages
     "measure",
     "templates",
-    "grasp",
     "perception",  # above templates: the cad detector finds templates in the whole scene (perception.cad_detector)
+    "grasp",
     "planning",
     "execution",
     # one frame, then the applications around it
