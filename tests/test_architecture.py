@@ -27,6 +27,7 @@ LAYERS: tuple[str, ...] = (
     "models",  # the bundled ONNX model files (no code)
     "hosts",  # loopback address checks (standard library only)
     "atomic",  # files replaced only when completely written (standard library only)
+    "interrupts",  # SIGINT/SIGTERM as exceptions, worker start-up (standard library and errors only)
     "typing",
     "validation",
     "geometry",
