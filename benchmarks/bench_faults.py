@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -36,35 +37,57 @@ def main() -> None:
     ap.add_argument("--host", default="127.0.0.61")
     ap.add_argument("--json", type=Path, default=None, help="write every run's record here")
     ap.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the emulator's loop (0: none)")
+    ap.add_argument("--controllers", default="emulator,reference", help="comma-separated: emulator, reference")
     args = ap.parse_args()
     cases = [c for c in args.cases.split(",") if c]
+    controllers = [c for c in args.controllers.split(",") if c]
     results = []
     t0 = time.monotonic()
-    with tempfile.TemporaryDirectory() as tmp, Campaign(args.host, Path(tmp), rt_priority=args.rt_priority) as campaign:
-        for _ in range(args.runs):
-            for case in cases:
-                r = campaign.run(case)
-                results.append(r)
-                flag = "ok" if not r.problems() else "; ".join(r.problems())
-                rest = "-" if r.rest_s is None else f"{r.rest_s * 1000:.0f} ms"
-                print(f"  {case:18s} exit {r.exit_code}  rest {rest}  overruns {r.emu_overruns}  {flag}", flush=True)
-    table = summarize(results)
-    print(f"\n{len(results)} runs in {time.monotonic() - t0:.0f} s")
+    load0 = os.getloadavg()
+    for ci, controller in enumerate(controllers):
+        host = args.host if ci == 0 else _next_host(args.host, ci)
+        with (
+            tempfile.TemporaryDirectory() as tmp,
+            Campaign(host, Path(tmp), rt_priority=args.rt_priority, controller=controller) as campaign,
+        ):
+            for _ in range(args.runs):
+                for case in cases:
+                    r = campaign.run(case)
+                    results.append(r)
+                    flag = "ok" if not r.problems() else "; ".join(r.problems())
+                    rest = "-" if r.rest_s is None else f"{r.rest_s * 1000:.0f} ms"
+                    line = f"exit {r.exit_code}  rest {rest}  overruns {r.emu_overruns}  {flag}"
+                    print(f"  {controller:9s} {case:18s} {line}", flush=True)
+    load1 = os.getloadavg()
+    print(
+        f"\n{len(results)} runs in {time.monotonic() - t0:.0f} s; load average {load0[0]:.1f} at the start, "
+        f"{load1[0]:.1f} at the end ({os.cpu_count()} cores)"
+    )
     head = (
         f"{'case':18s} {'runs':>4s} {'abort':>5s} {'hang':>4s} {'exit (exp)':>12s} {'stop cmd':>9s} {'at rest':>9s} "
         f"{'still':>9s} {'exit ms':>11s} {'moved':>6s} {'cmds':>4s} {'1-line':>6s} {'bad':>3s}"
     )
-    print(head)
-    for case, row in table.items():
-        codes = ",".join(str(c) for c in row["exit_codes"]) + f" ({row['expected_exit']})"
-        print(
-            f"{case:18s} {row['runs']:4d} {row['aborts']:5d} {row['hangs']:4d} {codes:>12s} "
-            f"{row['stop_cmd_ms']:>9s} {row['rest_ms']:>9s} {row['rtde_still_ms']:>9s} {row['exit_ms']:>11s} "
-            f"{row['moved_rad_max']:6.3f} {row['cmds_after_stop']:4d} {row['one_error_line'] - row['tracebacks']:6d} "
-            f"{row['problem_runs']:3d}"
-        )
+    for controller in controllers:
+        table = summarize([r for r in results if r.controller == controller])
+        print(f"\ncontroller: {controller}")
+        print(head)
+        for case, row in table.items():
+            codes = ",".join(str(c) for c in row["exit_codes"]) + f" ({row['expected_exit']})"
+            print(
+                f"{case:18s} {row['runs']:4d} {row['aborts']:5d} {row['hangs']:4d} {codes:>12s} "
+                f"{row['stop_cmd_ms']:>9s} {row['rest_ms']:>9s} {row['rtde_still_ms']:>9s} {row['exit_ms']:>11s} "
+                f"{row['moved_rad_max']:6.3f} {row['cmds_after_stop']:4d} "
+                f"{row['one_error_line'] - row['tracebacks']:6d} {row['problem_runs']:3d}"
+            )
     if args.json is not None:
         args.json.write_text(json.dumps([r.to_dict() for r in results], indent=1, default=str))
+
+
+def _next_host(host: str, k: int) -> str:
+    """Another loopback address for the k-th controller (the ports are fixed: one controller per address)."""
+    parts = host.split(".")
+    parts[-1] = str((int(parts[-1]) + k) % 254 + 1)
+    return ".".join(parts)
 
 
 if __name__ == "__main__":

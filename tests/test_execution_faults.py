@@ -95,7 +95,30 @@ def test_bad_gripper_output_refused_before_any_motion(campaign: Campaign) -> Non
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ["link_drop", "stall", "killed_controller"])
+@pytest.mark.parametrize("case", ["sigint_run", "sigterm_run"])
+def test_signal_during_the_cell_loop_stops_the_arm(campaign: Campaign, case: str) -> None:
+    """`normpos-grasp run --execute` (synthetic bin, one pick): the signal arrives during one of the loop's moves."""
+    r = campaign.run(case)
+    _assert_clean_exit(r)
+    assert "interrupted by SIG" in r.error_lines[0]
+    assert r.stop_cmd in ("stopJ", "stopL", "servoStop"), _why(r)
+    assert r.rest_s is not None and r.rest_s < SLACK_S + r.send_gap_s, _why(r)
+    assert r.motion_after_stop == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["protective_stop", "estop"])
+def test_safety_stops_become_one_typed_line(campaign: Campaign, case: str) -> None:
+    """The controller stops the arm itself; the CLI reports the stop in one line (exit 2) and sends nothing more."""
+    r = campaign.run(case)
+    _assert_clean_exit(r)
+    assert ("protective stop" if case == "protective_stop" else "emergency stop") in r.error_lines[0]
+    assert r.rest_s is not None and r.rest_s < SLACK_S, _why(r)
+    assert r.motion_after_stop == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["link_drop", "short_stall", "stall", "killed_controller"])
 def test_link_faults_become_one_typed_line(campaign: Campaign, case: str) -> None:
     r = campaign.run(case)
     _assert_clean_exit(r)  # exit 2 within seconds: no SIGABRT from ur_rtde, no hang

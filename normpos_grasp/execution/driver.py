@@ -303,7 +303,10 @@ class GuardedDriver(abc.ABC):
         now with `halt_decel`, before the exception travels on, and latches a fault so nothing further is sent."""
         if isinstance(exc, DriverFault) and self._fault is not None:
             return
-        reason = "SIGTERM" if isinstance(exc, TerminationRequested) else type(exc).__name__
+        if isinstance(exc, TerminationRequested):
+            reason = "SIGTERM"
+        else:  # SIGINT arrives as a KeyboardInterrupt subclass (normpos_grasp.interrupts.Interrupted)
+            reason = "KeyboardInterrupt" if isinstance(exc, KeyboardInterrupt) else type(exc).__name__
         try:
             if not self._backend_connected():
                 raise ConnectionLost("not connected")

@@ -115,6 +115,7 @@ class SupervisedRtdeDriver(GuardedDriver):
         self._child_connected = False
         self._streaming = False
         self._lock = threading.RLock()
+        self._dash: Any = None  # a dashboard connection kept open for stops: (socket, file)
 
     @property
     def child_pid(self) -> int | None:
@@ -154,9 +155,46 @@ class SupervisedRtdeDriver(GuardedDriver):
             except subprocess.TimeoutExpired:
                 log.error("the ur_rtde client process %d did not end after SIGKILL", proc.pid)
 
+    def _open_dashboard(self) -> None:
+        """Keep a dashboard connection for stops: a fresh one costs a connect, an accept and the welcome line on
+        the controller before the stop gets there (tens of ms on a loaded machine). Failing here is not fatal:
+        the stop then opens a fresh connection."""
+        self._close_dashboard()
+        try:
+            sock = socket.create_connection((self.host, DASHBOARD_PORT), timeout=1.0)
+            f = sock.makefile("rwb", buffering=0)
+            f.readline()
+            self._dash = (sock, f)
+        except OSError as exc:
+            log.warning("no standing dashboard connection to %s (%s); stops will open one", self.host, exc)
+
+    def _close_dashboard(self) -> None:
+        dash, self._dash = self._dash, None
+        if dash is not None:
+            for part in (dash[1], dash[0]):
+                try:
+                    part.close()
+                except OSError:
+                    log.debug("closing the dashboard connection failed")
+
+    def _stop_program(self) -> str | None:
+        """Stop the program over the standing dashboard connection, else a fresh one (`dashboard_stop`)."""
+        dash = self._dash
+        if dash is not None:
+            try:
+                dash[1].write(b"stop\n")
+                reply = dash[1].readline().decode(errors="replace").strip()
+                if reply:
+                    log.info("dashboard stop -> %s", reply)
+                    return None
+            except OSError as exc:
+                log.warning("standing dashboard connection failed (%s); opening a fresh one", exc)
+            self._close_dashboard()
+        return dashboard_stop(self.host)
+
     def _child_lost(self, fault: DriverFault) -> DriverFault:
         """The child died or stalled: stop the program from here, kill the child, latch `fault`."""
-        note = dashboard_stop(self.host)
+        note = self._stop_program()
         self._kill_child()
         if note:
             fault = type(fault)(f"{fault}; {note}")
@@ -225,6 +263,7 @@ class SupervisedRtdeDriver(GuardedDriver):
         if self.verify_controller:
             check_controller(self.host, self.limits.model, self.expected_serial)
         self._kill_child()
+        self._open_dashboard()
         self._spawn()
         try:
             self._call("connect", timeout_s=3 * self.options.connect_timeout_s + 10.0)
@@ -242,6 +281,7 @@ class SupervisedRtdeDriver(GuardedDriver):
             except DriverFault as exc:
                 log.warning("disconnecting the ur_rtde client: %s", exc)
         self._kill_child()
+        self._close_dashboard()
         self._streaming = False
 
     def _backend_connected(self) -> bool:
@@ -259,7 +299,7 @@ class SupervisedRtdeDriver(GuardedDriver):
         return replace(st, received_at=time.monotonic() - float(age_s))
 
     def _backend_link_lost(self) -> str | None:
-        note = dashboard_stop(self.host)
+        note = self._stop_program()
         self._kill_child()
         return note
 

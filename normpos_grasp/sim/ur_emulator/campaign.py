@@ -27,6 +27,8 @@ from normpos_grasp.errors import DriverTimeout, InputError
 
 from .process import EmulatorProcess, dashboard_request
 
+CONTROLLERS = ("emulator", "reference")
+
 CASES = (
     "sigint_movej",
     "sigterm_movej",
@@ -34,17 +36,26 @@ CASES = (
     "sigterm_movel",
     "sigint_stream",
     "sigterm_stream",
+    "sigint_run",
+    "sigterm_run",
     "model_mismatch",
     "bad_io",
+    "protective_stop",
+    "estop",
     "killed_controller",
     "link_drop",
+    "short_stall",
     "stall",
 )
 EXPECTED_EXIT = {"sigint": 130, "sigterm": 143}
+SHORT_STALL_S = 2.0  # s: a stall that ends by itself (the driver must have stopped the arm long before)
+PERMANENT_STALL_S = 1e6  # s: never ends while the CLI runs (cleared by the campaign afterwards)
+RUN_CELL = "ur5e_bin_parallel"  # the packaged cell `normpos-grasp run` picks in (a ur5e at the emulator's home)
+_RUN_ARGS = ("run", "--cell", RUN_CELL, "--source", "synthetic:3", "--execute", "--max-picks", "1")
 # s after the arm starts moving that a signal is sent: at cruise speed. moveJ of 1.2 rad at 0.8 rad/s, 1.2 rad/s^2
 # (execute's defaults) cruises from 0.67 s to 1.5 s; moveL of 0.2 m at 0.2 m/s, 1 m/s^2 from 0.2 s to 1.0 s; the
 # 3 s cosine stream of 1.2 rad runs at 0.5-0.63 rad/s from 1.0 s to 2.0 s.
-_INTO_MOVE_S = {"movej": 0.9, "movel": 0.5, "stream": 1.2}
+_INTO_MOVE_S = {"movej": 0.9, "movel": 0.5, "stream": 1.2, "run": 0.4}
 
 _MOVEL_SCRIPT = """
 import sys
@@ -89,8 +100,9 @@ class CaseResult:
     motion_cmds_in_run: int | None = None
     send_gap_s: float = 0.0  # time.monotonic() before -> after sending the signal (campaign process scheduling)
     emu_overruns: int = 0  # emulator control cycles late by > 20 ms during the run (a starved loop)
-    # the arm must rest within this of the fault (a stall is seen only after DriverOptions.stale_state_s, 0.5 s)
+    # the arm must rest within this of the fault (a stall is seen only after DriverOptions.stale_state_s)
     stop_budget_s: float = 0.1
+    controller: str = "emulator"
 
     @property
     def error_lines(self) -> list[str]:
@@ -196,20 +208,25 @@ def write_plan(path: Path, robot: str, q0: np.ndarray, q1: np.ndarray, duration_
 class Campaign:
     """Runs cases against an emulator on `host` (restarted where a case kills it). Use as a context manager.
 
-    stale_state_s: the CLI driver's DriverOptions.stale_state_s (a stall is seen only after it). exit_timeout_s: a
-    process still running this long after the fault counts as a hang (and is killed). rt_priority: SCHED_FIFO
-    priority of the emulator's 500 Hz loop (0: normal scheduling; on a loaded machine a starved loop makes the
-    emulated servo catch up in jumps, see `emu_overruns`)."""
+    controller: "emulator" (this package's loopback controller) or "reference" (normpos_grasp.sim.rtde_reference,
+    written independently from the protocol notes). stale_state_s: the CLI driver's DriverOptions.stale_state_s (a
+    stall is seen only after it). exit_timeout_s: a process still running this long after the fault counts as a
+    hang (and is killed). rt_priority: SCHED_FIFO priority of the controller's 500 Hz loop (0: normal scheduling;
+    on a loaded machine a starved loop makes the emulated servo catch up in jumps, see `emu_overruns`)."""
 
     def __init__(
         self,
         host: str,
         workdir: Path,
         model: str = "ur5e",
-        exit_timeout_s: float = 20.0,
-        stale_state_s: float = 0.5,
+        exit_timeout_s: float = 45.0,
+        stale_state_s: float = 0.15,
         rt_priority: int = 0,
+        controller: str = "emulator",
     ) -> None:
+        if controller not in CONTROLLERS:
+            raise InputError(f"unknown controller {controller!r}; one of {', '.join(CONTROLLERS)}")
+        self.controller = controller
         self.stale_state_s = stale_state_s
         self.rt_priority = rt_priority
         self.host = host
@@ -217,7 +234,7 @@ class Campaign:
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.model = model
         self.exit_timeout_s = exit_timeout_s
-        self.emu: EmulatorProcess | None = None
+        self.emu: Any = None  # EmulatorProcess or ReferenceControllerProcess (start, stop, emu, proc)
         self.runs = 0
 
     def __enter__(self) -> Campaign:
@@ -229,12 +246,20 @@ class Campaign:
             self.emu.stop()
             self.emu = None
 
-    def _ensure_emulator(self) -> EmulatorProcess:
+    def _ensure_emulator(self) -> Any:
         if self.emu is None or self.emu.proc is None or self.emu.proc.poll() is not None:
             extra = ("--rt-priority", str(self.rt_priority)) if self.rt_priority > 0 else ()
-            self.emu = EmulatorProcess(
-                self.host, self.model, ready_timeout_s=60.0, log_path=self.workdir / "emulator.log", extra_args=extra
-            ).start()
+            log_path = self.workdir / f"{self.controller}.log"
+            if self.controller == "reference":
+                from normpos_grasp.sim.rtde_reference import ReferenceControllerProcess
+
+                self.emu = ReferenceControllerProcess(
+                    self.host, self.model, ready_timeout_s=60.0, log_path=log_path, rt_priority=self.rt_priority
+                ).start()
+            else:
+                self.emu = EmulatorProcess(
+                    self.host, self.model, ready_timeout_s=60.0, log_path=log_path, extra_args=extra
+                ).start()
             self.emu.emu("unlock_delay", "0.5")
         return self.emu
 
@@ -262,25 +287,40 @@ class Campaign:
         if t_fault is not None:
             result.exit_after_fault_s = t_end - t_fault
 
-    def _wait_moving(self, proc: subprocess.Popen[str], timeout_s: float = 30.0) -> None:
+    def _wait_moving(self, proc: subprocess.Popen[str], timeout_s: float = 30.0, hold_s: float = 0.0) -> None:
+        """Return once the arm has moved without a pause for `hold_s` (a short move that ends before is skipped)."""
         deadline = time.monotonic() + timeout_s
+        since = None
         while time.monotonic() < deadline:
             if proc.poll() is not None:
                 raise DriverTimeout(f"the process ended (exit {proc.returncode}) before the arm moved")
             if _emu_state(self.host)["moving"] == "True":
-                return
+                since = time.monotonic() if since is None else since
+                if time.monotonic() - since >= hold_s:
+                    return
+            else:
+                since = None
             time.sleep(0.01)
         raise DriverTimeout(f"the arm did not start moving within {timeout_s} s")
 
     def _rest_q(self) -> np.ndarray:
-        """The emulator's joints once it is at rest and ready (protective stops unlocked)."""
+        """The controller's joints once it is at rest and ready (protective stops unlocked, e-stops released and the
+        arm powered on again)."""
         deadline = time.monotonic() + 10.0
         while time.monotonic() < deadline:
             st = _emu_state(self.host)
             if st["moving"] == "False":
+                if st["safety_mode"] == "7":
+                    dashboard_request(self.host, "emu release_estop")
+                    continue
                 if st["safety_mode"] != "1":
                     dashboard_request(self.host, "unlock protective stop")
                     time.sleep(0.1)
+                    continue
+                if st["robot_mode"] != "7":
+                    dashboard_request(self.host, "power on")
+                    dashboard_request(self.host, "brake release")
+                    time.sleep(0.05)
                     continue
                 return _q(st)
             time.sleep(0.05)
@@ -316,7 +356,7 @@ class Campaign:
     def _signal_case(self, case: str) -> CaseResult:
         sig_name, kind = case.split("_", 1)
         sig = signal.SIGINT if sig_name == "sigint" else signal.SIGTERM
-        result = CaseResult(case, None, EXPECTED_EXIT[sig_name], False, False)
+        result = CaseResult(case, None, EXPECTED_EXIT[sig_name], False, False, controller=self.controller)
         overruns0 = int(_emu_state(self.host)["overruns"])
         trace = _Trace(self.host)
         try:
@@ -328,11 +368,17 @@ class Campaign:
                 for line in proc.stdout:
                     if line.startswith("MOVEL"):
                         break
+            elif kind == "run":  # the cell loop: synthetic bin, ground-truth masks, one pick
+                q0 = self._rest_q()
+                proc = self._start(self._cli(*_RUN_ARGS, "--robot", self.host))
             else:
                 plan, q0 = self._plan_for(kind)
                 proc = self._start(self._cli("execute", str(plan), "--robot", self.host, "--execute"))
-            self._wait_moving(proc)
-            time.sleep(_INTO_MOVE_S[kind])  # at cruise speed
+            if kind == "run":  # a loop motion (the move home, then the pick's moves) running for 0.4 s
+                self._wait_moving(proc, timeout_s=120.0, hold_s=_INTO_MOVE_S[kind])
+            else:
+                self._wait_moving(proc)
+                time.sleep(_INTO_MOVE_S[kind])  # at cruise speed
             q_fault = np.asarray(trace.r.getActualQ())
             t_fault = time.monotonic()
             proc.send_signal(sig)
@@ -355,7 +401,7 @@ class Campaign:
         return result
 
     def _refusal_case(self, case: str) -> CaseResult:
-        result = CaseResult(case, None, 2, False, False)
+        result = CaseResult(case, None, 2, False, False, controller=self.controller)
         before = int(_emu_state(self.host)["motion_cmds"])
         q_before = self._rest_q()
         if case == "model_mismatch":
@@ -375,8 +421,8 @@ class Campaign:
         return result
 
     def _fault_case(self, case: str) -> CaseResult:
-        result = CaseResult(case, None, 2, False, False)
-        if case == "stall":
+        result = CaseResult(case, None, 2, False, False, controller=self.controller)
+        if case in ("stall", "short_stall"):  # seen only after the stall watchdog (stale_state_s)
             result.stop_budget_s = self.stale_state_s + 0.1
         plan, _ = self._plan_for("movej")
         proc = self._start(self._cli("execute", str(plan), "--robot", self.host, "--execute"))
@@ -392,8 +438,12 @@ class Campaign:
             self.emu = None
         elif case == "link_drop":
             emu.emu("drop")
+        elif case == "protective_stop":
+            emu.emu("protective_stop")
+        elif case == "estop":
+            emu.emu("estop")
         else:
-            emu.emu("stall", "60")
+            emu.emu("stall", str(SHORT_STALL_S if case == "short_stall" else PERMANENT_STALL_S))
         self._finish(proc, t_fault, result)
         if case == "stall":
             emu.emu("stall", "0")
