@@ -21,11 +21,11 @@ from normpos_grasp.cli.main import main
 from normpos_grasp.io.bop import BopScene
 from normpos_grasp.loop import SyntheticBinSource, run_cell_loop
 from normpos_grasp.pipeline import PipelineOptions, make_segmenter
-from normpos_grasp.replay import BundleRecorder, assert_replays, load_bundle, replay_bundle
+from normpos_grasp.replay import BundleRecorder, assert_replays, load_bundle
 from normpos_grasp.replay.bundle import MANIFEST, file_sha256, list_bundles, verify_bundle
 from normpos_grasp.replay.errors import BundleError
 from normpos_grasp.replay.options import options_from_json, options_to_json, set_option
-from normpos_grasp.replay.replay import canonical_plan_bytes
+from normpos_grasp.replay.replay import ReplayMismatch, canonical_plan_bytes
 from normpos_grasp.sim.parts import default_part_library
 
 OPTIONS = PipelineOptions(fit_workers=1)
@@ -115,15 +115,15 @@ def test_a_perturbed_depth_frame_is_detected(dry_bundles: list[Path]) -> None:
     depth = b.frame.depth_m.copy()
     target = next(i for i in b.instances if i.instance_id in {f["instance_id"] for f in b.fits if f["accepted"]})
     depth[target.mask] += 0.004  # one part measured 4 mm farther away
-    report = replay_bundle(b, frame=replace(b.frame, depth_m=depth))
-    assert not report.identical
+    with pytest.raises(ReplayMismatch, match="differs from the recording") as failed:
+        assert_replays(b, frame=replace(b.frame, depth_m=depth))
+    report = failed.value.report
+    assert not report.identical and report.table() in str(failed.value)
     rows = {r.item: r for r in report.rows}
     assert not rows["frame"].same and "4.000 mm" in rows["frame"].difference
     fit_row = next(r for r in report.rows if r.item.startswith(f"fit {target.instance_id} "))
     assert not fit_row.same
     assert not rows["plan JSON bytes"].same
-    with pytest.raises(AssertionError, match="differs from the recording"):
-        assert_replays(b, frame=replace(b.frame, depth_m=depth))
 
 
 def test_a_changed_option_is_detected(dry_bundles: list[Path], capsys: pytest.CaptureFixture[str]) -> None:
@@ -175,9 +175,10 @@ def test_a_failed_write_leaves_no_bundle(
     source = SyntheticBinSource(cell, count=1, seed=2, validate_physics=False)
     segmenter = source.ground_truth_segmenter()
     monkeypatch.setattr(TwinScene, "export_glb", broken)
-    with BundleRecorder(tmp_path, segmenter) as recorder, pytest.raises(OSError, match="No space"):
+    # background writer: the failure surfaces when the recorder is closed (or at the next save)
+    with pytest.raises(OSError, match="No space"), BundleRecorder(tmp_path, segmenter, background=True) as recorder:
         run_cell_loop(cell, source, segmenter, default_part_library(), None, max_picks=1, bundles=recorder)
-    assert list(tmp_path.iterdir()) == []  # neither a bundle nor its staging folder
+    assert recorder.saved == [] and list(tmp_path.iterdir()) == []  # neither a bundle nor its staging folder
 
 
 def test_depth_segmenter_bundle_segments_again_and_matches(tmp_path: Path) -> None:

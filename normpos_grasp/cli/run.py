@@ -273,8 +273,12 @@ def run(args: argparse.Namespace) -> int:
                 if args.bundles is not None:
                     from normpos_grasp.replay.bundle import BundleRecorder
 
-                    bundles = BundleRecorder(
-                        args.bundles, segmenter, library_sources=_library_sources(args, cell, library), driver=driver
+                    bundles = BundleRecorder(  # written in the background: the next turn does not wait
+                        args.bundles,
+                        segmenter,
+                        library_sources=_library_sources(args, cell, library),
+                        driver=driver,
+                        background=True,
                     )
                 records = run_cell_loop(
                     cell,

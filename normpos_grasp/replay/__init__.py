@@ -2,12 +2,13 @@
 options, twin) and re-run offline to show what differs. `bundle` writes and reads them, `replay` compares."""
 
 from normpos_grasp.replay.bundle import BUNDLE_FORMAT, Bundle, BundleRecorder, load_bundle, write_bundle
-from normpos_grasp.replay.replay import ReplayReport, assert_replays, replay_bundle
+from normpos_grasp.replay.replay import ReplayMismatch, ReplayReport, assert_replays, replay_bundle
 
 __all__ = [
     "BUNDLE_FORMAT",
     "Bundle",
     "BundleRecorder",
+    "ReplayMismatch",
     "ReplayReport",
     "assert_replays",
     "load_bundle",

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import functools
 import hashlib
 import io
 import json
@@ -37,7 +38,9 @@ import shutil
 import tempfile
 import threading
 import time
+import zipfile
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from importlib import metadata
 from pathlib import Path
@@ -226,7 +229,7 @@ def write_bundle(
         manifest = {
             "format": BUNDLE_FORMAT,
             "created_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ"),
-            "versions": _versions(),
+            "versions": dict(_versions()),
             "files": {
                 name: {"sha256": file_sha256(stage / name), "bytes": (stage / name).stat().st_size}
                 for name in sorted(files)
@@ -285,9 +288,7 @@ def _write_contents(
     put("camera.json", _json_bytes(frame.camera.to_dict()))
     h, w = frame.depth_m.shape
     masks = np.stack([i.mask for i in instances]) if instances else np.zeros((0, h, w), dtype=bool)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, rgb=np.asarray(frame.rgb), depth_m=np.asarray(frame.depth_m), masks=masks)
-    put("frame.npz", buf.getvalue())
+    put("frame.npz", _npz_bytes(rgb=np.asarray(frame.rgb), depth_m=np.asarray(frame.depth_m), masks=masks))
     put(
         "instances.json",
         _json_bytes(
@@ -377,7 +378,9 @@ class BundleRecorder:
 
     segmenter: the segmenter of the loop (recorded by `segmenter_record`); library_sources: the
     `templates.library.resolve_library` entries the loop's templates come from (empty: the built-in parts).
-    Use as a context manager (stops the sampler)."""
+    background: write bundles in one writer thread while the loop goes on (the loop waits for none); a failed
+    write is raised by the next `save` and by `close`. `saved` lists the bundles written so far, in order.
+    Use as a context manager: leaving it waits for pending writes and stops the sampler."""
 
     def __init__(
         self,
@@ -387,6 +390,7 @@ class BundleRecorder:
         library_sources: Sequence[str | Path] = (),
         driver: ArmDriver | None = None,
         trace_period_s: float = 0.1,
+        background: bool = False,
     ) -> None:
         if not trace_period_s > 0.0:
             raise InputError(f"trace_period_s must be positive, got {trace_period_s}")
@@ -405,6 +409,9 @@ class BundleRecorder:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="bundle-writer") if background else None
+        self._pending: list[Future[Path]] = []
+        self._failure: BaseException | None = None
         if driver is not None:
             self._thread = threading.Thread(target=self._sample, args=(driver,), name="bundle-trace", daemon=True)
             self._thread.start()
@@ -412,15 +419,33 @@ class BundleRecorder:
     def __enter__(self) -> BundleRecorder:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        try:
+            self.close()
+        except Exception as failure:  # an exception is leaving already: log this one instead of masking it
+            log.error("bundle recorder: %s: %s", type(failure).__name__, failure)
 
     def close(self) -> None:
-        """Stop the state sampler (idempotent)."""
+        """Wait for pending writes, stop the state sampler (idempotent); raises a write that failed."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if self._writer is not None:
+            self._writer.shutdown(wait=True)
+            self._writer = None
+        self._raise_failure()
+
+    def _raise_failure(self) -> None:
+        for future in [f for f in self._pending if f.done()]:
+            self._pending.remove(future)
+            failure = future.exception()
+            if failure is not None and self._failure is None:
+                self._failure = failure
+                raise failure
 
     def save(
         self, record: PickRecord, cell: CellConfig, templates: Sequence[Template], options: PipelineOptions
@@ -443,13 +468,24 @@ class BundleRecorder:
                 "samples": samples,
             }
         path = self.directory / f"{self.run_id}-cycle{record.index + 1:03d}"
-        out = write_bundle(
-            path, record, cell, templates, options, segmenter=self.segmenter, library=self._library, trace=trace
-        )
-        self.saved.append(out)
-        self.save_times_s.append(time.perf_counter() - t0)
-        log.info("bundle %s written", out)
-        return out
+        library = self._library
+
+        def write() -> Path:
+            t1 = time.perf_counter()
+            out = write_bundle(
+                path, record, cell, templates, options, segmenter=self.segmenter, library=library, trace=trace
+            )
+            self.saved.append(out)
+            self.save_times_s.append(time.perf_counter() - t1 + prep_s)
+            log.info("bundle %s written", out)
+            return out
+
+        prep_s = time.perf_counter() - t0
+        if self._writer is None:
+            return write()
+        self._raise_failure()
+        self._pending.append(self._writer.submit(write))
+        return path
 
     def _sample(self, driver: ArmDriver) -> None:
         t0 = time.monotonic()
@@ -564,6 +600,17 @@ def load_bundle(path: str | Path) -> Bundle:
 
 
 # ----------------------------------------------------------------------------------------------- helpers
+def _npz_bytes(**arrays: np.ndarray) -> bytes:
+    """An .npz archive (what `np.load` reads) deflated at level 1: noisy float64 depth barely compresses further at
+    numpy's level 6, which costs several times the time."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        for name, array in arrays.items():
+            with archive.open(f"{name}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
 def _json_bytes(data: Any) -> bytes:
     return json.dumps(data, indent=1).encode("utf-8")
 
@@ -584,6 +631,7 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+@functools.cache
 def _versions() -> dict[str, str | None]:
     from normpos_grasp import __version__
 

@@ -149,13 +149,22 @@ def replay_bundle(
     return ReplayReport(b.path, tuple(rows), plan_json, result, tuple(notes))
 
 
+class ReplayMismatch(AssertionError):
+    """`assert_replays` found a difference; `report` is the replay's ReplayReport (its table is the message)."""
+
+    def __init__(self, report: ReplayReport) -> None:
+        super().__init__(f"replay of {report.bundle} differs from the recording:\n{report.table()}")
+        self.report = report
+
+
 def assert_replays(bundle: Bundle | str | Path, **overrides: Any) -> ReplayReport:
-    """Test helper: replay `bundle` (keywords as for `replay_bundle`) and raise AssertionError with the summary
-    table unless everything is identical; returns the report. A bundle saved from a failing cycle, committed under
-    tests/, thereby becomes a regression test: `def test_cycle(): assert_replays("tests/data/bundles/NAME")`."""
+    """Test helper: replay `bundle` (keywords as for `replay_bundle`) and raise ReplayMismatch (an AssertionError)
+    with the summary table unless every result is identical; returns the report. A bundle saved from a failing
+    cycle, committed under tests/, thereby becomes a regression test:
+    `def test_cycle(): assert_replays("tests/data/bundles/NAME")`."""
     report = replay_bundle(bundle, **overrides)
     if not report.identical:
-        raise AssertionError(f"replay of {report.bundle} differs from the recording:\n{report.table()}")
+        raise ReplayMismatch(report)
     return report
 
 
@@ -354,4 +363,12 @@ def _first_difference(p0: dict[str, Any] | None, p1: dict[str, Any] | None, a: b
     return f"differ from byte {n}" + (f": {', '.join(keys)}" if keys else "")
 
 
-__all__ = ["ReplayReport", "Row", "assert_replays", "canonical_plan_bytes", "remake_segmenter", "replay_bundle"]
+__all__ = [
+    "ReplayMismatch",
+    "ReplayReport",
+    "Row",
+    "assert_replays",
+    "canonical_plan_bytes",
+    "remake_segmenter",
+    "replay_bundle",
+]
