@@ -49,6 +49,7 @@ LAYERS: tuple[str, ...] = (
     "grasp",
     "planning",
     "execution",
+    "watch",  # zone watch during motion, per-frame drift check (uses a driver only through request_stop)
     # one frame, then the applications around it
     "pipeline",
     "realsense_source",
@@ -58,6 +59,7 @@ LAYERS: tuple[str, ...] = (
     "loop",
     "training",
     "demo",
+    "teach",  # CAD to a ready part: symmetry, resting poses, grasps validated in physics, report
     "warmup",  # install-time compilation of every stage's kernels
     "cli",
     # the package's own __init__ (version only)

@@ -113,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
         f"estimate: {n_rows} poses from {n_inst} instances in {n_frames} frames "
         f"({time.perf_counter() - t_all:.1f} s) -> {out}"
     )
+    if unknown and n_rows > 0:
+        missing = ", ".join(f"{k} (x{v})" for k, v in sorted(unknown.items()))
+        print(f"estimate: note: the data's obj_ids {missing} are not in the part library (no pose)", file=sys.stderr)
     if n_rows == 0 and n_inst > 0:
         why = why_none(reasons, unknown, library)
         print(f"estimate: no pose accepted from {n_inst} instances: {why}", file=sys.stderr)

@@ -54,6 +54,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "view",
     "simulate",
     "replay",
+    "teach",
 )
 
 
