@@ -12,6 +12,7 @@ import pytest
 
 from normpos_grasp.cell import load_cell
 from normpos_grasp.cli.main import main
+from normpos_grasp.errors import SafetyViolation
 from normpos_grasp.execution import SafetyLimits
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -109,3 +110,71 @@ def test_a_plan_for_another_arm_than_the_cell_is_refused(cell_file: Path, tmp_pa
     plan["robot"] = "ur10e"
     code, err = _execute(capsys, str(_write(tmp_path, plan)))
     assert code == 2 and "ur10e" in err and "ur5e" in err
+
+
+def _samples(home: np.ndarray, q1: np.ndarray, duration: float, dip: float, n: int = 61) -> tuple[np.ndarray, ...]:
+    """A cosine-profile trajectory home -> q1 over `duration` s, with the shoulder lowered by `dip` rad mid-way
+    (zero at both ends, so the waypoints stay where they are)."""
+    t = np.linspace(0.0, duration, n)
+    s = (1 - np.cos(np.pi * t / duration)) / 2
+    q = home + np.outer(s, q1 - home)
+    q[:, 1] += dip * np.sin(np.pi * t / duration) ** 2
+    return t, q
+
+
+def test_no_plan_whose_samples_leave_the_workspace_or_the_rated_caps_is_accepted(cell_file: Path) -> None:
+    """Seeded plans whose waypoints lie inside the cell but whose timed samples may dip under the workspace floor
+    or run faster than the caps: every plan the judge accepts is re-checked sample by sample with an independent
+    forward kinematics (the reference controller's DH chain) against the cell's box, the cell's caps and the
+    UR5e's rated joint speeds."""
+    from normpos_grasp.execution import execute_plan
+    from normpos_grasp.kinematics.ur_params import ur_params
+    from normpos_grasp.sim.rtde_reference.robot import frames
+
+    cell = load_cell(cell_file)
+    limits = SafetyLimits.from_cell(cell)
+    home = np.asarray(cell.home_q, dtype=np.float64)
+    params = ur_params(cell.robot_model)
+    rated = np.asarray(params.velocity_limit)
+    world_from_base = np.asarray(cell.world_from_base)
+    tool = np.asarray(cell.tool.flange_from_tcp)
+    rng = np.random.default_rng(18)
+    accepted = refused_samples_only = 0
+    for _ in range(60):
+        q1 = home + rng.uniform(-0.4, 0.4, 6) * np.array([1, 0.3, 0.3, 0.5, 0.5, 1])
+        t, q = _samples(home, q1, float(rng.uniform(0.4, 3.0)), float(rng.choice([0.0, rng.uniform(0.0, 0.9)])))
+        plan = _plan(cell_file, [home, q1])
+        plan["trajectory"] = {"samples": [{"t": float(a), "q": b.tolist()} for a, b in zip(t, q, strict=True)]}
+        try:
+            execute_plan(None, plan, limits)
+        except SafetyViolation as exc:
+            if "trajectory" in str(exc):
+                refused_samples_only += 1
+            continue
+        accepted += 1
+        tcp = np.array([(world_from_base @ frames(params, qi)[-1] @ tool)[:3, 3] for qi in q])
+        assert np.all(tcp >= limits.workspace_min - 1e-9) and np.all(tcp <= limits.workspace_max + 1e-9)
+        qd = np.diff(q, axis=0) / np.diff(t)[:, None]
+        assert np.all(np.abs(qd) <= np.minimum(rated, limits.max_joint_speed) * (1 + 1e-6))
+        qdd = np.diff(qd, axis=0) / np.diff(t)[1:, None]
+        assert np.all(np.abs(qdd) <= limits.max_joint_accel * (1 + 1e-6) + 1e-9)
+    assert accepted >= 10 and refused_samples_only >= 10, (accepted, refused_samples_only)
+
+
+def test_execute_refuses_a_trajectory_that_dips_under_the_table(cell_file: Path, tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """Both waypoints are inside the workspace; only the timed samples between them leave it."""
+    cell = load_cell(cell_file)
+    home = np.asarray(cell.home_q, dtype=np.float64)
+    limits = SafetyLimits.from_cell(cell)
+    q1 = home + np.array([0.3, 0.0, 0.0, 0.0, 0.0, 0.0])
+    dip = next(
+        d
+        for d in np.arange(0.05, 1.5, 0.05)
+        if (limits.box_from_base @ limits.base_from_tcp(home + [0, d, 0, 0, 0, 0]))[2, 3]
+        < limits.workspace_min[2] - 0.02
+    )
+    t, q = _samples(home, q1, 4.0, float(dip) + 0.1)
+    plan = _plan(cell_file, [home, q1])
+    plan["trajectory"] = {"samples": [{"t": float(a), "q": b.tolist()} for a, b in zip(t, q, strict=True)]}
+    code, err = _execute(capsys, str(_write(tmp_path, plan)), "--execute")
+    assert code == 2 and "trajectory" in err and "workspace" in err, err
