@@ -151,6 +151,15 @@ class GripperFault(DriverFault):
         self.detail = detail
 
 
+class ZoneIntrusion(DriverFault):
+    """The zone watch (normpos_grasp.watch) saw something new inside a watched volume and stopped the arm; `detail`
+    holds the intrusion (zone, blob size, when the frame was taken and when the stop was sent)."""
+
+    def __init__(self, message: str, detail: Any = None) -> None:
+        super().__init__(message)
+        self.detail = detail
+
+
 class ControllerMismatch(NormposError):
     """The controller is not the arm the plan or cell names (robot model or serial number); nothing was sent."""
 

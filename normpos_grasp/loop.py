@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -18,7 +19,7 @@ import numpy as np
 
 from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.cell.config import CellConfig
-from normpos_grasp.errors import DriverFault, InputError, RobotModelError, SafetyViolation
+from normpos_grasp.errors import DriverFault, InputError, RobotModelError, SafetyViolation, ZoneIntrusion
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.execution.gripper_config import ToolDriver
 from normpos_grasp.execution.plan import ExecutionReport, execute_plan
@@ -29,6 +30,7 @@ from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.records.template import Template
 from normpos_grasp.typing import FloatArray
+from normpos_grasp.watch.session import CellWatch
 
 if TYPE_CHECKING:
     from normpos_grasp.replay.bundle import BundleRecorder
@@ -55,8 +57,9 @@ class FrameSource(Protocol):
 
 @dataclass(frozen=True, eq=False)
 class PickRecord:
-    """One turn of the loop. status: 'picked', 'pick_failed', 'no_feasible_grasp', 'dry_run', 'driver_fault' or
-    'unsafe_plan' (the safety limits refused the plan; nothing was sent).
+    """One turn of the loop. status: 'picked', 'pick_failed', 'no_feasible_grasp', 'dry_run', 'driver_fault',
+    'unsafe_plan' (the safety limits refused the plan; nothing was sent) or 'zone_stop' (the zone watch stopped the
+    arm; the fault names what it saw).
 
     check: the source's verdict on the pick; timings_ms: per stage, milliseconds (perception, plan, execute, check);
     fault: the fault's type and message for 'driver_fault' (the arm was stopped and nothing further is sent until
@@ -285,6 +288,7 @@ def run_cell_loop(
     bundles: BundleRecorder | None = None,
     gripper: ToolDriver | None = None,
     before_execute: Callable[[PickPlan], None] | None = None,
+    watch: CellWatch | None = None,
 ) -> list[PickRecord]:
     """Run picks until the source is exhausted, nothing is feasible, the driver faults, or `max_picks` turns.
 
@@ -300,6 +304,11 @@ def run_cell_loop(
     (docs/replay.md), after `on_pick`. `gripper` (execution.gripper_config.ToolDriver, connected) is the cell's
     gripper driver: the plan's opening is commanded to it and its grip detection decides 'pick_failed'.
     `before_execute` hears every plan just before it is sent (a simulation puts the part in the emulated gripper).
+    `watch` (normpos_grasp.watch.CellWatch, docs/watch.md) checks every frame against the static reference before
+    planning (a moved camera raises CameraMoved, saying by how much, and ends the loop) and watches the zones during
+    each execution: an intrusion stops the arm and gives a 'zone_stop' record; the loop then follows the resume
+    rules (acknowledgement where the cell asks, zones clear, driver resumed) and re-captures, re-measures and
+    re-plans from where the arm stopped, never resuming the old plan.
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
@@ -323,6 +332,8 @@ def run_cell_loop(
         frame = source.capture()
         cycle_q = np.array(start_q, dtype=np.float64)
         t_capture = (time.perf_counter() - t0) * 1e3
+        if watch is not None:
+            watch.check_drift(frame)  # CameraMoved ends the loop before anything is planned from a moved camera
         result = process_frame(frame, segmenter, templates, cell, options, start_q)
         timings = {"capture": t_capture, **result.timings_ms}
         if on_plan is not None:
@@ -337,7 +348,21 @@ def run_cell_loop(
         try:
             if execute and before_execute is not None:
                 before_execute(plan)
-            report = execute_plan(driver, plan_json, limits, dry_run=not execute, gripper=gripper)
+            with (
+                watch.watching(frame, driver, cycle_q, watch.held_radius(plan))
+                if (watch is not None and execute)
+                else nullcontext()
+            ):
+                report = execute_plan(driver, plan_json, limits, dry_run=not execute, gripper=gripper)
+        except ZoneIntrusion as exc:
+            timings["execute"] = (time.perf_counter() - t0) * 1e3
+            log.error("pick %d: zone stop: %s", index + 1, exc)
+            fault = f"ZoneIntrusion: {exc}"
+            emit(PickRecord(index, result, "zone_stop", "not_checked", plan_json, None, timings, fault))
+            if watch is None or driver is None or not watch.after_stop(driver, exc):
+                break
+            start_q = driver.state().q  # re-capture, re-measure and re-plan from here; the old plan is dropped
+            continue
         except (DriverFault, SafetyViolation) as exc:
             timings["execute"] = (time.perf_counter() - t0) * 1e3
             status = "driver_fault" if isinstance(exc, DriverFault) else "unsafe_plan"

@@ -54,6 +54,7 @@ _TOP_KEYS = (
     "templates",
     "motion",
     "planning",
+    "watch",
 )
 _ROBOT_KEYS = ("model", "serial_number", "world_from_base", "home")
 _CAMERA_KEYS = ("world_from_camera", "from_scene")
@@ -77,6 +78,24 @@ _CUSTOM_PARALLEL_KEYS = (
     "grip_depth_m",
 )
 _CUSTOM_SUCTION_KEYS = (*_CUSTOM_COMMON_KEYS, "cup_diameter_m", "stem_diameter_m")
+_WATCH_KEYS = (
+    "zones",
+    "margin_m",
+    "arm_margin_m",
+    "stop",
+    "require_ack",
+    "k_sigma",
+    "min_blob_px",
+    "silhouette_pad_m",
+    "latency_s",
+    "held_radius_m",
+    "downsample",
+    "static_reference",
+    "drift",
+)
+_ZONE_KEYS = ("name", "min", "max")
+_DRIFT_KEYS = ("max_translation_mm", "max_rotation_deg", "max_shift_px")
+WATCH_STOP_KINDS = ("stop", "protective")
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +138,50 @@ class BinSpec:
     def rim_z(self) -> float:
         """World height of the bin rim, m."""
         return float(self.world_from_bin[2, 3] + self.inner_size[2])
+
+
+@dataclass(frozen=True, eq=False)
+class ZoneSpec:
+    """A watched volume: an axis-aligned box of the world frame from corner `lo` (3,) to corner `hi` (3,), m."""
+
+    name: str
+    lo: FloatArray
+    hi: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
+class WatchSpec:
+    """The `watch:` section (docs/watch.md): zones watched while the arm moves and the per-frame drift check.
+
+    zones: watched boxes; margin_m: each zone grows by this on every side, m; arm_margin_m: also watch everything
+    within this distance of the arm's links at the commanded joints, m (0: off); stop: 'stop' (stopJ with the
+    driver's deceleration) or 'protective' (a protective stop, unlocked on the pendant); require_ack: after a zone
+    stop the loop waits for the operator's acknowledgement before it re-plans; k_sigma: a pixel is nearer than
+    expected when it is nearer by more than k_sigma times the sensor's depth noise at that depth; min_blob_px:
+    smallest connected blob that counts, in watch pixels (after `downsample`); silhouette_pad_m: the arm's
+    predicted silhouette grows by this (tracking error), m; latency_s: the silhouette covers every pose the arm
+    took during this window before a frame is checked (the camera's and the stream's delay), s; held_radius_m:
+    radius around the TCP ignored for a held part (0: from the plan's part), m; downsample: the depth stream is
+    reduced by this factor before the comparison; static_reference: static reference JSON (`calibrate extrinsics
+    --image`) checked in every frame before planning (None: no drift check); drift_*: the drift check's tolerances
+    (mm, deg, and the largest shift of a reference point, px).
+    """
+
+    zones: tuple[ZoneSpec, ...] = ()
+    margin_m: float = 0.0
+    arm_margin_m: float = 0.0
+    stop: str = "stop"
+    require_ack: bool = False
+    k_sigma: float = 5.0
+    min_blob_px: int = 12
+    silhouette_pad_m: float = 0.06
+    latency_s: float = 0.1
+    held_radius_m: float = 0.0
+    downsample: int = 2
+    static_reference: Path | None = None
+    drift_max_translation_mm: float = 1.0
+    drift_max_rotation_deg: float = 0.1
+    drift_max_shift_px: float = 0.35
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,6 +236,7 @@ class CellConfig:
     floor_z: float | None = None
     gripper_driver: GripperDriverSpec | None = None  # `gripper.driver` (None: not configured)
     source_sha256: str = ""  # of the file it was read from ('' for a cell built from a mapping)
+    watch: WatchSpec | None = None  # the `watch:` section (None: no zone watch, no drift check)
 
     def record(self) -> dict[str, str]:
         """What a plan records of the cell it was made in: name, file path and the file's SHA-256."""
@@ -524,6 +588,63 @@ def _camera_floor(floor_z: float | None, boxes: Iterable[BoxSpec], bin_spec: Bin
     return max(levels) if levels else None
 
 
+def _watch(v: Any, base_dir: str | Path) -> WatchSpec:
+    d = _mapping(v, "watch", _WATCH_KEYS)
+    raw = d.get("zones", [])
+    if not isinstance(raw, list):
+        raise _err("watch.zones", f"expected a list of boxes {{name, min, max}}, got {_short(raw)}")
+    zones = []
+    for i, z in enumerate(raw):
+        zd = _mapping(z, f"watch.zones[{i}]", _ZONE_KEYS)
+        lo = _lengths(_req(zd, "min", f"watch.zones[{i}]"), f"watch.zones[{i}].min", 3)
+        hi = _lengths(_req(zd, "max", f"watch.zones[{i}]"), f"watch.zones[{i}].max", 3)
+        if np.any(hi <= lo):
+            raise _err(f"watch.zones[{i}]", f"max {hi.tolist()} must exceed min {lo.tolist()} on every axis")
+        name = _text(zd["name"], f"watch.zones[{i}].name") if "name" in zd else f"zone_{i}"
+        zones.append(ZoneSpec(name, lo, hi))
+    if len({z.name for z in zones}) != len(zones):
+        raise _err("watch.zones", f"zone names must be unique, got {[z.name for z in zones]}")
+    arm_margin = _length(d.get("arm_margin_m", 0.0), "watch.arm_margin_m", 0.0, 2.0)
+    if not zones and arm_margin == 0.0:
+        raise _err("watch", "nothing to watch: give zones or an arm_margin_m above 0")
+    stop = d.get("stop", "stop")
+    if stop not in WATCH_STOP_KINDS:
+        raise _err("watch.stop", f"expected one of {', '.join(WATCH_STOP_KINDS)}, got {_short(stop)}")
+    ack = d.get("require_ack", False)
+    if not isinstance(ack, bool):
+        raise _err("watch.require_ack", f"expected true or false, got {_short(ack)}")
+    blob = _num(d.get("min_blob_px", 12), "watch.min_blob_px", 1, 10_000, "px")
+    down = _num(d.get("downsample", 2), "watch.downsample", 1, 8)
+    for key, value in (("min_blob_px", blob), ("downsample", down)):
+        if value != int(value):
+            raise _err(f"watch.{key}", f"expected a whole number, got {value:g}")
+    reference = None
+    if "static_reference" in d:
+        reference = (Path(base_dir) / _text(d["static_reference"], "watch.static_reference", 4096)).resolve()
+    drift = _mapping(d.get("drift", {}), "watch.drift", _DRIFT_KEYS)
+    return WatchSpec(
+        zones=tuple(zones),
+        margin_m=_length(d.get("margin_m", 0.0), "watch.margin_m", 0.0, 1.0),
+        arm_margin_m=arm_margin,
+        stop=str(stop),
+        require_ack=ack,
+        k_sigma=_num(d.get("k_sigma", 5.0), "watch.k_sigma", 2.0, 50.0),
+        min_blob_px=int(blob),
+        silhouette_pad_m=_length(d.get("silhouette_pad_m", 0.06), "watch.silhouette_pad_m", 0.0, 0.5),
+        latency_s=_num(d.get("latency_s", 0.1), "watch.latency_s", 0.0, 1.0, "s"),
+        held_radius_m=_length(d.get("held_radius_m", 0.0), "watch.held_radius_m", 0.0, 1.0),
+        downsample=int(down),
+        static_reference=reference,
+        drift_max_translation_mm=_num(
+            drift.get("max_translation_mm", 1.0), "watch.drift.max_translation_mm", 0.01, 100.0, "mm"
+        ),
+        drift_max_rotation_deg=_num(
+            drift.get("max_rotation_deg", 0.1), "watch.drift.max_rotation_deg", 0.001, 10.0, "deg"
+        ),
+        drift_max_shift_px=_num(drift.get("max_shift_px", 0.35), "watch.drift.max_shift_px", 0.01, 50.0, "px"),
+    )
+
+
 def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = None) -> CellConfig:
     """Validate a parsed cell mapping; see docs/cells.md for the schema. Every key at every level is checked
     (unknown keys are errors naming their full path), every number for type, finiteness and range."""
@@ -639,4 +760,5 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
             if "driver" in data["gripper"]
             else None
         ),
+        watch=_watch(data["watch"], base_dir) if "watch" in data else None,
     )

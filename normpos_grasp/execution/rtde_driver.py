@@ -333,6 +333,14 @@ class RtdeDriver(GuardedDriver):
             self._c.servoStop(decel)
         self._c.stopJ(decel, False)
 
+    def _backend_protective_stop(self) -> None:
+        if self._c is None or self._link_lost:
+            return
+        # the protective stop ends the control script, so the call may report failure although the stop happened;
+        # the receive interface's safety mode is the judge (GuardedDriver checks it)
+        if not self._c.triggerProtectiveStop():
+            log.info("triggerProtectiveStop() returned false (the control script ended with the stop)")
+
     def _backend_set_output(self, index: int, level: bool, tool: bool) -> None:
         ok = self._io.setToolDigitalOut(index, level) if tool else self._io.setStandardDigitalOut(index, level)
         if not ok:

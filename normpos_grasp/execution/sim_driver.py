@@ -240,6 +240,10 @@ class SimDriver(GuardedDriver):
                     return
             time.sleep(0.002)
 
+    def _backend_protective_stop(self) -> None:
+        with self._lock:
+            self._enter_pstop()
+
     def _backend_link_lost(self) -> None:
         # the simulated controller is reachable by the same path; a real one would get a dashboard stop
         with self._lock:

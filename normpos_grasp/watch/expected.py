@@ -1,0 +1,317 @@
+"""The depth the camera should see while the arm moves.
+
+The reference is the depth frame of the last measurement (the one the plan was made from), reduced by `downsample`
+(mean of the valid pixels of each block). Where that frame saw the arm (its silhouette at the joints it was taken
+at) or saw nothing, the reference falls back to the cell's static boxes (and floor) rendered through the camera.
+Each pixel's threshold is `k_sigma` times the depth noise of the difference of two frames (sqrt(2) sigma(z) of the
+sensor model), taken at the nearest reference depth of its 3x3 neighbourhood, so a depth edge that jitters by a
+pixel never reads as something new. The arm's predicted silhouette at the commanded joints is drawn from the link
+capsules of the robot model plus the tool and the held part, each grown by `silhouette_pad_m` (latency and
+tracking error), as discs of the projected radius along each capsule's axis (conservative: the disc is sized at
+the capsule's nearest depth).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from normpos_grasp.camera.model import Camera
+from normpos_grasp.cell.config import BoxSpec
+from normpos_grasp.errors import InputError
+from normpos_grasp.kinematics.arm import ArmModel
+from normpos_grasp.records.tool import ToolModel
+from normpos_grasp.typing import BoolArray, FloatArray
+from normpos_grasp.watch.zones import ArmSegments
+
+SigmaFn = Callable[[FloatArray], FloatArray]  # depth noise RMS (m) of one frame at depth z (m)
+
+
+def downsample_depth(depth_m: FloatArray, factor: int) -> np.ndarray:
+    """(H // f, W // f) float32 mean of the valid (> 0) pixels of each f x f block; 0 where under half are valid."""
+    d = np.asarray(depth_m, dtype=np.float32)
+    if d.ndim != 2:
+        raise InputError(f"depth must be (H, W), got {d.shape}")
+    if factor == 1:
+        return np.where(np.isfinite(d) & (d > 0), d, np.float32(0.0))
+    h, w = d.shape[0] // factor, d.shape[1] // factor
+    blocks = d[: h * factor, : w * factor].reshape(h, factor, w, factor)
+    blocks = np.where(np.isfinite(blocks) & (blocks > 0), blocks, np.float32(0.0))
+    total = blocks.sum(axis=(1, 3), dtype=np.float32)
+    count = np.count_nonzero(blocks, axis=(1, 3))
+    need = (factor * factor + 1) // 2
+    return np.where(count >= need, total / np.maximum(count, 1), np.float32(0.0)).astype(np.float32)
+
+
+def watch_camera(camera: Camera, factor: int) -> Camera:
+    """The camera of the reduced image (intrinsics scaled by 1 / factor, same extrinsics)."""
+    cam = camera if factor == 1 else camera.scaled(1.0 / factor)
+    want = (camera.width // factor, camera.height // factor)
+    if (cam.width, cam.height) != want:
+        cam = Camera(cam.K, want[0], want[1], cam.distortion, cam.depth_scale_m, cam.world_from_camera)
+    return cam
+
+
+class ArmCapsules:
+    """The arm's link capsules (robot model), the tool's boxes as bounding capsules and the flange-to-TCP body, each
+    fixed to a DH frame (0 = base .. 6 = flange); `at` places them for a batch of joint vectors at once."""
+
+    def __init__(self, arm: ArmModel, tool: ToolModel | None = None) -> None:
+        self.arm = arm
+        joints, starts, ends, radii = [], [], [], []
+
+        def add(joint: int, pose: FloatArray, kind: str, size: tuple[float, ...]) -> None:
+            if kind == "box":
+                half = np.asarray(size, dtype=np.float64) / 2
+                k = int(np.argmax(half))
+                axis = pose[:3, k] * half[k]
+                r = float(np.linalg.norm(np.delete(half, k)))
+            elif kind == "sphere":
+                axis, r = np.zeros(3), float(size[0])
+            else:
+                axis, r = pose[:3, 2] * (float(size[1]) / 2 if len(size) > 1 else 0.0), float(size[0])
+            joints.append(joint)
+            starts.append(pose[:3, 3] - axis)
+            ends.append(pose[:3, 3] + axis)
+            radii.append(r)
+
+        for shape in arm.shapes:
+            add(shape.joint, np.asarray(shape.link_from_shape, dtype=np.float64), shape.kind, shape.size)
+        self.flange_from_tcp = np.eye(4) if tool is None else np.asarray(tool.flange_from_tcp, dtype=np.float64)
+        if tool is not None:
+            for tool_shape, tcp_from_shape in tool.posed_shapes(tool.stroke_m):
+                add(6, self.flange_from_tcp @ tcp_from_shape, tool_shape.kind, tool_shape.size)
+            # the flange-to-TCP body, in case the tool's boxes leave gaps
+            body = np.eye(4)
+            body[:3, 3] = self.flange_from_tcp[:3, 3] / 2
+            body[:3, 2] = self.flange_from_tcp[:3, 3] / max(float(np.linalg.norm(self.flange_from_tcp[:3, 3])), 1e-9)
+            add(6, body, "capsule", (0.04, float(np.linalg.norm(self.flange_from_tcp[:3, 3]))))
+        self.joints = np.array(joints, dtype=np.int64)
+        self.start = np.array(starts)
+        self.end = np.array(ends)
+        self.radius = np.array(radii)
+
+    def at(self, q: FloatArray, held_radius_m: float = 0.0, pad_m: float = 0.0) -> ArmSegments:
+        """Capsules (world frame) at joints (6,) or along a path (M, 6), grown by `pad_m`; with a sphere of
+        `held_radius_m` at the TCP for a held part."""
+        qs = np.asarray(q, dtype=np.float64).reshape(-1, 6)
+        frames = self.arm.frames(qs)  # (M, 7, 4, 4)
+        fj = frames[:, self.joints]  # (M, C, 4, 4)
+        rot = fj[..., :3, :3]
+        off = fj[..., :3, 3]
+        a = np.einsum("mcij,cj->mci", rot, self.start) + off
+        b = np.einsum("mcij,cj->mci", rot, self.end) + off
+        r = np.broadcast_to(self.radius, a.shape[:2])
+        if held_radius_m > 0:
+            tcp = (frames[:, 6] @ self.flange_from_tcp)[:, :3, 3]
+            a = np.concatenate([a, tcp[:, None]], axis=1)
+            b = np.concatenate([b, tcp[:, None]], axis=1)
+            r = np.concatenate([r, np.full((len(qs), 1), held_radius_m)], axis=1)
+        return ArmSegments(a.reshape(-1, 3), b.reshape(-1, 3), r.reshape(-1) + pad_m)
+
+
+def arm_segments(
+    arm: ArmModel, q: FloatArray, tool: ToolModel | None = None, held_radius_m: float = 0.0, pad_m: float = 0.0
+) -> ArmSegments:
+    """The arm's link capsules at joints `q` (6,) or (M, 6) rad, the tool's boxes as bounding capsules and a sphere
+    of `held_radius_m` at the TCP for a held part, all grown by `pad_m`; world frame."""
+    return ArmCapsules(arm, tool).at(q, held_radius_m, pad_m)
+
+
+def silhouette_depth(camera: Camera, segments: ArmSegments) -> tuple[np.ndarray, np.ndarray]:
+    """(near, far) (H, W) float32: the depth range the capsules may occupy at each pixel (inf / -inf where none
+    covers it). Each capsule is drawn as a thick line with round caps between its projected ends, as wide as it looks
+    at its nearest depth, and spans from its nearest to its farthest depth (conservative)."""
+    import cv2
+
+    h, w = camera.height, camera.width
+    near = np.full((h, w), np.inf, dtype=np.float32)
+    far = np.full((h, w), -np.inf, dtype=np.float32)
+    if len(segments.radius) == 0:
+        return near, far
+    cfw = camera.camera_from_world
+    a = segments.start @ cfw[:3, :3].T + cfw[:3, 3]
+    b = segments.end @ cfw[:3, :3].T + cfw[:3, 3]
+    r = segments.radius
+    z_near = np.minimum(a[:, 2], b[:, 2]) - r
+    z_far = np.maximum(a[:, 2], b[:, 2]) + r
+    reaches = z_near < 0.05
+    if np.any(reaches & (z_far > 0.05)):
+        # a capsule reaches the camera: whatever it may cover is unknown, so it covers the whole view
+        near[:] = 0.0
+        far[:] = np.inf
+        return near, far
+    keep = np.nonzero(~reaches)[0]
+    ua = np.clip(camera.project(a[keep]), -1e4, 1e4)
+    ub = np.clip(camera.project(b[keep]), -1e4, 1e4)
+    width = np.minimum(2 * np.ceil(camera.fx * r[keep] / z_near[keep]) + 2, 4000).astype(np.int64)
+    pa = np.round(ua).astype(np.int64)
+    pb = np.round(ub).astype(np.int64)
+    # painter's order: farthest near-depth first, so each pixel ends with the least near depth covering it (and the
+    # greatest far depth, drawn in increasing order)
+    for order, image, values in (
+        (np.argsort(-z_near[keep]), near, z_near[keep]),
+        (np.argsort(z_far[keep]), far, z_far[keep]),
+    ):
+        for n in order:
+            cv2.line(
+                image, (int(pa[n, 0]), int(pa[n, 1])), (int(pb[n, 0]), int(pb[n, 1])), float(values[n]), int(width[n])
+            )
+    return near, far
+
+
+def silhouette(camera: Camera, segments: ArmSegments) -> BoolArray:
+    """(H, W) bool: pixels the capsules may cover (see `silhouette_depth`)."""
+    near, _ = silhouette_depth(camera, segments)
+    return np.asarray(np.isfinite(near) | (near == 0.0))
+
+
+def render_boxes(
+    camera: Camera, boxes: Sequence[tuple[FloatArray, FloatArray]], floor_z: float | None = None
+) -> np.ndarray:
+    """(H, W) float32 z-depth of boxes (world_from_box (4, 4), full size (3,)) and an optional floor plane z =
+    `floor_z`, through `camera` (no distortion); 0 where nothing is hit. Vectorised slab test per box."""
+    xy = _rays(camera)
+    h, w = camera.height, camera.width
+    dirs = np.concatenate([xy, np.ones((h, w, 1), dtype=np.float64)], axis=2).reshape(-1, 3)
+    wfc = camera.require_world_from_camera()
+    best = np.full(len(dirs), np.inf)
+    for world_from_box, size in boxes:
+        box_from_camera = np.linalg.inv(np.asarray(world_from_box, dtype=np.float64)) @ wfc
+        o = box_from_camera[:3, 3]
+        d = dirs @ box_from_camera[:3, :3].T
+        half = np.asarray(size, dtype=np.float64) / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-half[None] - o[None]) / d
+            t2 = (half[None] - o[None]) / d
+        t_near = np.nanmax(np.minimum(t1, t2), axis=1)
+        t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+        hit = (t_far >= np.maximum(t_near, 0.0)) & (t_near > 0)
+        best = np.where(hit & (t_near < best), t_near, best)
+    if floor_z is not None:
+        dw = dirs @ wfc[:3, :3].T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (floor_z - wfc[2, 3]) / dw[:, 2]
+        ok = np.isfinite(t) & (t > 0)
+        best = np.where(ok & (t < best), t, best)
+    out = np.where(np.isfinite(best), best, 0.0).reshape(h, w)
+    return out.astype(np.float32)
+
+
+_RAY_CACHE: dict[tuple[bytes, int, int], FloatArray] = {}
+
+
+def _rays(camera: Camera) -> FloatArray:
+    """(H, W, 2) normalised pixel-centre coordinates, cached per intrinsics."""
+    key = (camera.K.tobytes() + camera.distortion.tobytes(), camera.width, camera.height)
+    rays = _RAY_CACHE.get(key)
+    if rays is None:
+        rays = camera.pixel_grid_rays()
+        if len(_RAY_CACHE) > 16:
+            _RAY_CACHE.clear()
+        _RAY_CACHE[key] = rays
+    return rays
+
+
+class ExpectedScene:
+    """Reference depth and per-pixel thresholds for one watch period (from one measured frame).
+
+    camera: the stream's camera (native size, with world_from_camera); reference_depth_m: (H, W) the measured depth
+    the plan was made from; sigma: depth noise RMS of one frame at depth z (m -> m, e.g. the sensor model's
+    `depth_rms_m` at the native focal length); q_capture: (6,) joints when the reference was taken (None: the arm
+    was not in view); static: the cell's boxes and floor height for pixels the reference cannot give.
+    """
+
+    def __init__(
+        self,
+        camera: Camera,
+        reference_depth_m: FloatArray,
+        sigma: SigmaFn,
+        arm: ArmModel,
+        tool: ToolModel | None,
+        *,
+        downsample: int = 2,
+        k_sigma: float = 5.0,
+        pad_m: float = 0.06,
+        q_capture: FloatArray | None = None,
+        static_boxes: Sequence[BoxSpec] = (),
+        floor_z: float | None = None,
+    ) -> None:
+        import cv2
+
+        ref_native = np.asarray(reference_depth_m)
+        if ref_native.shape != (camera.height, camera.width):
+            raise InputError(f"reference depth is {ref_native.shape}, camera is {camera.height}x{camera.width}")
+        self.factor = int(downsample)
+        self.camera = watch_camera(camera, self.factor)
+        self.arm, self.tool, self.pad_m = arm, tool, float(pad_m)
+        self.capsules = ArmCapsules(arm, tool)
+        ref = downsample_depth(ref_native, self.factor)
+        static = render_boxes(self.camera, [(b.world_from_box, b.size) for b in static_boxes], floor_z)
+        ref = np.where(ref > 0, ref, static)
+        self.sigma = sigma
+        self.k_sigma = float(k_sigma)
+        # pixels the arm hid when the reference was taken: learned from the first frame that shows them uncovered
+        self.unknown = np.zeros(ref.shape, dtype=bool)
+        if q_capture is not None:
+            near, far = silhouette_depth(self.camera, self.capsules.at(q_capture, 0.0, self.pad_m))
+            self.unknown = (ref >= near - 0.01) & (ref <= far + 0.01)
+            ref = np.where(self.unknown, np.float32(0.0), ref)
+        known = ref > 0
+        nearest = cv2.erode(np.where(known, ref, np.float32(1e3)).astype(np.float32), np.ones((3, 3), np.uint8))
+        nearest = np.where(known, np.minimum(nearest, ref), 0.0).astype(np.float32)
+        self.reference = ref.astype(np.float32)
+        self.limit = np.where(known, nearest - self._threshold(nearest), np.float32(0.0)).astype(np.float32)
+        self.rays = _rays(self.camera).astype(np.float32)
+
+    def _threshold(self, z: np.ndarray) -> np.ndarray:
+        """k_sigma x the noise of the difference of two frames at depth z, m (float32)."""
+        return np.float32(self.k_sigma * np.sqrt(2.0)) * np.asarray(self.sigma(z.astype(np.float64)), np.float32)
+
+    def learn(self, depth: np.ndarray, covered: BoolArray) -> BoolArray:
+        """Adopt `depth` (reduced frame) where the reference is still unknown and the arm's predicted silhouette
+        `covered` leaves the pixel free; returns the pixels adopted (they are not tested in this frame)."""
+        if not self.unknown.any():
+            return np.zeros(depth.shape, dtype=bool)
+        take = self.unknown & ~covered & (depth > 0)
+        if take.any():
+            z = depth[take]
+            self.reference[take] = z
+            self.limit[take] = z - self._threshold(z) - np.float32(0.01)  # no neighbourhood yet: 1 cm for edges
+            self.unknown[take] = False
+        return take
+
+    def predicted_silhouette(self, q: FloatArray, held_radius_m: float = 0.0) -> BoolArray:
+        """(h, w) bool: where the arm, tool and held part may appear at commanded joints `q` (6,) or along a joint
+        path (M, 6) (every pose the arm took while the frame was on its way), padded."""
+        return silhouette(self.camera, self.segments(q, held_radius_m, self.pad_m))
+
+    def arm_explains(self, depth: np.ndarray, q: FloatArray, held_radius_m: float = 0.0) -> BoolArray:
+        """(h, w) bool: pixels whose depth (reduced frame, m) lies within the depth range the arm, tool and held part
+        may occupy there at `q` (6,) or along a path (M, 6), padded and widened by the depth noise."""
+        near, far = silhouette_depth(self.camera, self.segments(q, held_radius_m, self.pad_m))
+        tol = self._threshold(np.where(depth > 0, depth, np.float32(1.0)).astype(np.float32))
+        return np.asarray((depth >= near - tol) & (depth <= far + tol))
+
+    def segments(self, q: FloatArray, held_radius_m: float = 0.0, pad_m: float = 0.0) -> ArmSegments:
+        """Capsules of the arm at joints (6,) or along a path (M, 6), world frame."""
+        return self.capsules.at(q, held_radius_m, pad_m)
+
+
+def joint_path(history: Sequence[tuple[float, FloatArray]], since: float, max_step_rad: float = 0.05) -> FloatArray:
+    """(M, 6) joints of the (t, q) samples at or after `since` (and the last one before it), with samples added
+    between neighbours so that no joint moves more than `max_step_rad` from one to the next."""
+    if not history:
+        raise InputError("no joint samples to draw the arm from")
+    start = 0
+    for i, (t, _) in enumerate(history):
+        if t < since:
+            start = i
+    qs = [np.asarray(q, dtype=np.float64) for _, q in history[start:]]
+    out = [qs[0]]
+    for a, b in zip(qs[:-1], qs[1:], strict=True):
+        n = int(np.ceil(float(np.max(np.abs(b - a))) / max_step_rad))
+        for k in range(1, n + 1):
+            out.append(a + (b - a) * (k / n))
+    return np.array(out)
