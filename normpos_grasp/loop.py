@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from normpos_grasp.camera.model import RGBDFrame
-from normpos_grasp.cell.config import CellConfig
+from normpos_grasp.cell.config import BoxSpec, CellConfig
 from normpos_grasp.errors import DriverFault, InputError, RobotModelError, SafetyViolation, ZoneIntrusion
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.execution.gripper_config import ToolDriver
@@ -316,6 +316,7 @@ def run_cell_loop(
         raise InputError("execute=True needs a connected driver")
     start_q = driver.state().q if (driver is not None and execute) else np.asarray(cell.home_q, dtype=np.float64)
     records: list[PickRecord] = []
+    cell_now = cell  # the cell as filled so far: used pattern slots gone, the parts left there static boxes
 
     def emit(record: PickRecord) -> None:
         record = replace(record, captured=frame, start_q=cycle_q)  # this turn's frame and start joints
@@ -328,13 +329,16 @@ def run_cell_loop(
     for index in range(max_picks):
         if source.exhausted:
             break
+        if not cell_now.places:
+            log.warning("every place slot of cell %r is filled: loop stopped", cell.name)
+            break
         t0 = time.perf_counter()
         frame = source.capture()
         cycle_q = np.array(start_q, dtype=np.float64)
         t_capture = (time.perf_counter() - t0) * 1e3
         if watch is not None:
             watch.check_drift(frame)  # CameraMoved ends the loop before anything is planned from a moved camera
-        result = process_frame(frame, segmenter, templates, cell, options, start_q)
+        result = process_frame(frame, segmenter, templates, cell_now, options, start_q)
         timings = {"capture": t_capture, **result.timings_ms}
         if on_plan is not None:
             on_plan(result)
@@ -381,12 +385,38 @@ def run_cell_loop(
         check = source.check_pick(plan)  # synthetic bins replay the pick in physics, dry run or not
         timings["check"] = (time.perf_counter() - t0) * 1e3
         status = "dry_run" if not execute else ("picked" if check in ("held", "not_checked") else "pick_failed")
+        if status in ("picked", "dry_run"):
+            cell_now = with_placed(cell_now, plan)
         if execute and driver is not None:
             start_q = driver.state().q
         elif plan.waypoints:
             start_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
         emit(PickRecord(index, result, status, check, plan_json, report, timings))
     return records
+
+
+def with_placed(cell: CellConfig, plan: PickPlan) -> CellConfig:
+    """`cell` after `plan` put its part down: a single-use place (a pattern slot) leaves the list of places and the
+    part left there, as its box (the fitted template's bounds at the release pose), joins the static boxes that every
+    later plan collides with. A reusable place pose changes nothing."""
+    place = next((p for p in cell.places if p.name == plan.place), None)
+    if place is None or not place.single_use or plan.chosen is None:
+        return cell
+    c = plan.chosen.candidate
+    target = plan.targets[c.target]
+    release = next(w for w in plan.waypoints if w.name == "place")
+    world_from_object = (
+        np.asarray(release.world_from_tcp) @ np.linalg.inv(c.world_from_tcp) @ np.asarray(target.world_from_object)
+    )
+    lo, hi = np.asarray(target.mesh.bounds, dtype=np.float64)  # type: ignore[attr-defined]
+    centre = np.eye(4)
+    centre[:3, 3] = (lo + hi) / 2.0
+    box = BoxSpec(f"placed/{place.name}", world_from_object @ centre, hi - lo)
+    return replace(
+        cell,
+        places=tuple(p for p in cell.places if p.name != place.name),
+        static_boxes=(*cell.static_boxes, box),
+    )
 
 
 def _mesh_centre(mesh: Any, world_from_object: FloatArray) -> FloatArray:

@@ -26,6 +26,7 @@ from normpos_grasp.records.tool import ToolModel, parallel_gripper, suction_tool
 from normpos_grasp.typing import FloatArray
 
 from .gripper_driver import GripperDriverSpec, parse_gripper_driver
+from .places import pattern_slots
 
 # Ceilings of the motion caps. Joint speeds: each joint's rated speed (ur_params, from UR's ROS description).
 # UR rates no joint or tool acceleration (the ROS description says has_acceleration_limits: false), so the
@@ -62,7 +63,7 @@ _POSE_KEYS = ("xyz", "rpy_deg", "rpy")
 _BOX_KEYS = ("pose", "size")
 _FIXTURE_KEYS = ("name", "pose", "size")
 _BIN_KEYS = ("pose", "inner_size", "wall_m")
-_PLACE_KEYS = ("name", "world_from_tcp", "approach_m")
+_PLACE_KEYS = ("name", "world_from_tcp", "approach_m", "pattern", "align_part")
 _MOTION_KEYS = ("joint_velocity", "joint_acceleration", "tcp_speed_m_s", "tcp_acceleration_m_s2", "workspace")
 _WORKSPACE_KEYS = ("min", "max")
 _PLANNING_KEYS = ("entry_clearance_m", "lift_m", "voxel_m")
@@ -186,11 +187,17 @@ class WatchSpec:
 
 @dataclass(frozen=True, eq=False)
 class PlaceSpec:
-    """A place pose: `world_from_tcp` (4, 4) at release; `approach_m` straight-line length above it."""
+    """A place pose: `world_from_tcp` (4, 4) at release; `approach_m` straight-line length above it; align_part:
+    the TCP turns about the world z axis so the part's x axis (from its fitted pose) lies along this pose's x
+    axis (else the TCP keeps this orientation and the part lands as it was grasped). single_use: a slot of a
+    place pattern: the loop uses it once and the part left there joins the collision world (a plain place pose is
+    reused, e.g. a conveyor that carries parts away)."""
 
     name: str
     world_from_tcp: FloatArray
     approach_m: float = 0.1
+    align_part: bool = False
+    single_use: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -568,6 +575,19 @@ def _motion(v: Any, model: str) -> MotionLimits:
     return MotionLimits(vel, acc, tcp_speed, ws_min, ws_max, tcp_acc, "workspace" in d)
 
 
+def _check_outside_bounds(world_from_tcp: FloatArray, motion: MotionLimits, path: str) -> None:
+    """A place (slot) whose TCP lies outside a given motion.workspace in x or y can never be planned: refuse it
+    here (its z is the surface height; the planner raises the TCP above it)."""
+    pos = world_from_tcp[:3, 3]
+    lo, hi = motion.workspace_min[:2], motion.workspace_max[:2]
+    if motion.workspace_given and (np.any(pos[:2] < lo) or np.any(pos[:2] > hi)):
+        raise _err(
+            path,
+            f"the place TCP at {np.round(pos, 3).tolist()} m is outside motion.workspace in x or y (min "
+            f"{motion.workspace_min.tolist()}, max {motion.workspace_max.tolist()}): move it or shrink the pattern",
+        )
+
+
 def _check_outside_workspace(world_from_camera: FloatArray, motion: MotionLimits, name: str) -> None:
     """A camera strictly inside the box the TCP may move in could be driven into: refuse it (ExtrinsicsError)."""
     pos = world_from_camera[:3, 3]
@@ -724,13 +744,21 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         pose = parse_pose(_req(pd, "world_from_tcp", f"place[{i}]"), f"place[{i}].world_from_tcp")
         if floor_z is not None and pose[2, 3] < floor_z:
             raise _err(f"place[{i}].world_from_tcp", f"z = {pose[2, 3]:g} m is under floor_z {floor_z:g} m")
-        places.append(
-            PlaceSpec(
-                _text(pd["name"], f"place[{i}].name") if "name" in pd else f"place_{i}",
-                pose,
-                _length(pd.get("approach_m", 0.1), f"place[{i}].approach_m", 0.0, 1.0),
-            )
+        place_name = _text(pd["name"], f"place[{i}].name") if "name" in pd else f"place_{i}"
+        approach = _length(pd.get("approach_m", 0.1), f"place[{i}].approach_m", 0.0, 1.0)
+        align = pd.get("align_part", False)
+        if not isinstance(align, bool):
+            raise _err(f"place[{i}].align_part", f"expected true or false, got {_short(align)}")
+        slots = (
+            pattern_slots(pd["pattern"], f"place[{i}].pattern", pose, place_name)
+            if "pattern" in pd
+            else [(place_name, pose)]
         )
+        for slot_name, slot_pose in slots:
+            _check_outside_bounds(slot_pose, limits, f"place[{i}].pattern" if "pattern" in pd else f"place[{i}]")
+            places.append(PlaceSpec(slot_name, slot_pose, approach, align, "pattern" in pd))
+    if len({p.name for p in places}) != len(places):
+        raise _err("place", f"place names must be unique, got {[p.name for p in places]}")
 
     templates_path = None
     if "templates" in data:

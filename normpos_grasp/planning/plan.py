@@ -381,8 +381,17 @@ def _line(
 
 def _place_pose(place: PlaceSpec, tcp_from_object: FloatArray, target: Target, drop_m: float) -> FloatArray:
     """TCP pose at release: the place orientation, raised so the held object's lowest point is `drop_m` above the
-    place height."""
+    place height. With `place.align_part` the TCP first turns about the world z axis so the object's x axis (held
+    as fitted: `tcp_from_object`) points along the place pose's x axis in the horizontal plane (a part whose x axis
+    stands vertical keeps the place orientation)."""
     pose = place.world_from_tcp.copy()
+    if place.align_part:
+        a = (pose @ tcp_from_object)[:3, 0]
+        b = place.world_from_tcp[:3, 0]
+        if np.hypot(a[0], a[1]) > 1e-6 and np.hypot(b[0], b[1]) > 1e-6:
+            yaw = np.arctan2(b[1], b[0]) - np.arctan2(a[1], a[0])
+            c, s = np.cos(yaw), np.sin(yaw)
+            pose[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ pose[:3, :3]
     verts = np.asarray(target.mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
     obj = pose @ tcp_from_object
     lowest = float((verts @ obj[:3, :3].T)[:, 2].min() + obj[2, 3])
