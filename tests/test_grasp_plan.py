@@ -461,3 +461,75 @@ def test_lone_unexplained_points_are_not_clutter(bin_cell: CellConfig) -> None:
     patch = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, top + 0.04)])
     plan = plan_pick([_fit(part, pose, 1)], [measured(patch)], bin_cell, _all_options())
     assert plan.status == "no_feasible_grasp" and plan.counts.get("collision_clutter", 0) > 0
+
+
+def _points(label: str, iid: int, pts: np.ndarray) -> NormPosition:
+    return NormPosition(
+        label,
+        0.9,
+        np.zeros((1, 1), bool),
+        pts,
+        np.tile([0, 0, 1.0], (len(pts), 1)),
+        np.zeros((len(pts), 2), np.int64),
+        "world",
+        np.array([0.5, 0, 1.0]),
+        iid,
+        pts.mean(0),
+        pts.min(0),
+        pts.max(0),
+        OrientedBox(pts.mean(0), np.eye(3), np.ptp(pts, axis=0)),
+    )
+
+
+def test_points_inside_a_neighbours_fit_are_not_clutter(bin_cell: CellConfig) -> None:
+    from normpos_grasp.planning.plan import build_world
+
+    a, b = _box("a", (0.06, 0.04, 0.03)), _box("b", (0.06, 0.04, 0.03))
+    pose_a, pose_b = _on_floor(a, 0.46, 0.0), _on_floor(b, 0.53, 0.0)
+    # a's mask bled over b: a dense patch of b's top face is labelled a; and a real obstacle 3 cm above b
+    xs, ys = np.meshgrid(np.linspace(0.51, 0.55, 8), np.linspace(-0.015, 0.015, 6))
+    bled = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, FLOOR_Z + 0.03)])
+    above = bled + [0.0, 0.0, 0.03]
+    fits = [_fit(a, pose_a, 1), _fit(b, pose_b, 2)]
+    for extra, clutter in ((bled, False), (above, True)):
+        world, _, _ = build_world(bin_cell, fits, [_points("a", 1, extra)], None)  # type: ignore[arg-type]
+        assert any(name.startswith("clutter") for name in world.elements) is clutter
+
+
+def test_stop_line_names_the_parts_and_the_closest_call(bin_cell: CellConfig) -> None:
+    from normpos_grasp.planning.plan import rejections_by_target, stop_line
+
+    part = _box("box", (0.06, 0.04, 0.03))
+    far = make_pose(None, [1.6, 0.0, 0.015])
+    cell = replace(
+        bin_cell, motion=replace(bin_cell.motion, workspace_min=np.full(3, -5.0), workspace_max=np.full(3, 5.0))
+    )
+    plan = plan_pick([_fit(part, far, 1)], [], cell, _all_options())
+    rows = rejections_by_target(plan)
+    assert len(rows) == 1 and rows[0].template == "box"
+    assert rows[0].best_reason == "ik" and sum(rows[0].counts.values()) == len(plan.evaluations)
+    line = stop_line(plan)
+    assert "\n" not in line and "1 part(s) left (box)" in line and "closest" in line and "ik" in line
+    doc = rows[0].to_json()
+    assert doc["best_rejected"]["reason"] == "ik" and np.asarray(doc["best_rejected"]["world_from_tcp"]).shape == (4, 4)
+
+
+def test_push_motion_follows_the_planned_push(bin_cell: CellConfig) -> None:
+    from normpos_grasp.kinematics.arm import ArmModel
+    from normpos_grasp.planning.push import PushHand, plan_push, push_motion
+
+    part = _box("box", (0.06, 0.04, 0.03))
+    pose = _on_floor(part, 0.5, 0.0)
+    fits = [_fit(part, pose, 1)]
+    plan = plan_pick(fits, [], bin_cell)
+    push = plan_push(plan, fits, [], bin_cell, PushHand(0.013, 0.027, 0.02), FLOOR_Z, 0.05)
+    assert push is not None
+    traj = push_motion(push, fits, [], bin_cell, np.asarray(bin_cell.home_q))
+    assert np.allclose(traj.q[0], bin_cell.home_q) and np.all(np.diff(traj.t) > 0)
+    arm = ArmModel.from_name(bin_cell.robot_model, bin_cell.world_from_base)
+    tcp = (arm.fk(traj.q) @ bin_cell.tool.flange_from_tcp)[:, :3, 3]
+    start, end = push.world_from_tcp[:3, 3], push.world_from_tcp[:3, 3] + push.push
+    # the TCP passes the push's start and end, and ends straight above the end
+    assert np.min(np.linalg.norm(tcp - start, axis=1)) < 2e-3
+    assert np.min(np.linalg.norm(tcp - end, axis=1)) < 2e-3
+    assert np.allclose(tcp[-1], end + [0.0, 0.0, 0.08], atol=1e-3)

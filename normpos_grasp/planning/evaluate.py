@@ -57,7 +57,7 @@ class EvaluationOptions:
     score: quality, approach (vertical approach preferred), travel (joint distance from home, per rad),
     priority (template priority), clearance, height (higher objects first, per m). mechanics: grip mechanics
     (`grasp.quality`): candidates it predicts to slip, turn or lose the seal are rejected with its reason, and its
-    predicted success is the quality term of the ranking (None: the synthesis' geometric quality, no check).
+    predicted success scales the geometric quality in the ranking (None: the geometric quality alone, no check).
     """
 
     max_approach_up: float = 0.2
@@ -225,7 +225,7 @@ def evaluate_candidates(
                 reject(int(j), "collision_cell", POSE_NAMES[p_idx])
             idx = idx[np.logical_not(hits)]
     # mechanics on the fitted template (friction cones, pad area, weight and torque; the cup's seal and load):
-    # candidates that will not hold are rejected; the predicted success of the rest replaces the geometric quality
+    # candidates that will not hold are rejected; the rest rank by the predicted success times the geometric quality
     success = np.array([c.quality for c in candidates])
     if opts.mechanics is not None:
         for j in idx:
@@ -235,7 +235,7 @@ def evaluate_candidates(
             if not mech.ok:
                 reject(int(j), mech.reason, "grasp")
             else:
-                success[int(j)] = mech.success
+                success[int(j)] = mech.success * c.quality
     # 2. prior order: object height, grasp quality, approach angle, priority
     heights = np.array([targets[c.target].height_m for c in candidates])
     prior = (

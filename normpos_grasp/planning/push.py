@@ -19,7 +19,7 @@ from normpos_grasp.errors import InputError
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.planning.plan import PlanOptions, build_world
 from normpos_grasp.records.normpos import NormPosition
-from normpos_grasp.records.plan import PickPlan
+from normpos_grasp.records.plan import PickPlan, Trajectory
 from normpos_grasp.records.template import TemplateFit
 from normpos_grasp.typing import FloatArray
 
@@ -130,8 +130,9 @@ def push_motion(
     cell: CellConfig,
     start_q: FloatArray,
     rise_m: float = 0.08,
-) -> FloatArray:
-    """Joint waypoints (K, 6) rad that carry out `push` with the closed gripper from `start_q`: a joint-space move
+) -> Trajectory:
+    """The trajectory (within the cell's joint and TCP caps) that carries out `push` with the closed gripper from
+    `start_q`: a joint-space move
     (straight when clear, else RRT-Connect) to `rise_m` above the push's start, then straight TCP lines (IK every
     `PlanOptions.cartesian_step_m` on one branch) down to the start, along the push and up by `rise_m`. The arm is
     checked against the perceived world all along, the tool too until the push starts (then against the cell only:
@@ -187,5 +188,18 @@ def push_motion(
         except PlanningError as exc:
             last = _PathRejected(f"push: no joint path to the push: {exc}", "push_transfer")
             continue
-        return np.vstack([np.asarray(transfer)[1:], down[1:], along[1:], up[1:]])
+        from normpos_grasp.planning.timing import time_parameterise
+
+        motion = cell.motion
+        moves = [np.stack(transfer[k : k + 2]) for k in range(len(transfer) - 1)]
+        lines = [down, along, up]
+        fk = arm.fk
+        tcps = [(fk(seg) @ cell.tool.flange_from_tcp)[:, :3, 3] for seg in lines]
+        return time_parameterise(
+            moves + lines,
+            np.asarray(motion.joint_velocity, dtype=np.float64),
+            np.asarray(motion.joint_acceleration, dtype=np.float64),
+            [None] * len(moves) + tcps,
+            motion.tcp_speed_m_s,
+        )
     raise last
