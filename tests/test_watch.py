@@ -5,6 +5,7 @@ then a fresh capture and plan, never the old plan)."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from normpos_grasp.camera.static_reference import StaticReference
 from normpos_grasp.cell import resolve_cell
 from normpos_grasp.cell.config import WatchSpec, ZoneSpec, cell_from_dict
 from normpos_grasp.errors import CameraMoved, CellConfigError, DriverFault, ZoneIntrusion
-from normpos_grasp.execution import SafetyLimits, SimDriver
+from normpos_grasp.execution import DriverOptions, SafetyLimits, SimDriver
 from normpos_grasp.geometry import invert_pose, make_pose, rotation_from_rotvec
 from normpos_grasp.io.yaml_safe import load_yaml_file
 from normpos_grasp.kinematics.arm import ArmModel
@@ -220,3 +221,71 @@ def test_stop_request_stops_a_simulated_move_and_latches() -> None:
     finally:
         driver.disconnect()
         driver.shutdown()
+
+
+def test_loop_zone_stop_is_acknowledged_then_replanned_from_a_fresh_capture() -> None:
+    from normpos_grasp.loop import SyntheticBinSource, run_cell_loop
+    from normpos_grasp.sim.parts import default_part_library
+    from normpos_grasp.watch.session import CellWatch
+    from normpos_grasp.watch.synthetic import ThreadedStream
+
+    source = SyntheticBinSource(CELL, count=2, seed=0, validate_physics=False)
+    arm = ArmModel.from_name("ur5e", CELL.world_from_base)
+    spec = WatchSpec(zones=(BIN,), margin_m=0.02, require_ack=True)
+    opened: list[ThreadedStream] = []
+
+    def open_stream(frame: RGBDFrame, driver: SimDriver) -> ThreadedStream:
+        depth = source.last.rendering.depth_m
+        scene = SyntheticCellStream(frame.camera, depth, arm, CELL.tool, SENSOR, len(opened), fast=True)
+        # the first execution: a hand reaches into the bin 0.3 s in and withdraws 1 s after the stop; later: nothing
+        hand = hand_box(np.array([0.42, -0.1, 0.12]))
+        first = not opened
+
+        def shown(t: float) -> list[Intruder]:
+            gone = stopped and time.monotonic() > stopped[0] + 1.0
+            return [hand] if first and t >= 0.3 and not gone else []
+
+        stream = ThreadedStream(scene, lambda: driver.state().q, shown)
+        opened.append(stream)
+        return stream.start()
+
+    asked: list[str] = []
+    stopped: list[float] = []
+    # the state watchdog is relaxed: the synthetic stream shares this process's two loaded cores with the driver
+    driver = SimDriver(
+        SafetyLimits.from_cell(CELL), q_home=HOME, options=DriverOptions(stale_state_s=1.0, watchdog_s=1.0)
+    )
+    driver.connect()
+    captures: list[int] = []
+    capture = source.capture
+
+    def counted() -> RGBDFrame:
+        captures.append(1)
+        return capture()
+
+    source.capture = counted  # type: ignore[method-assign]
+    try:
+        watch = CellWatch(
+            CELL,
+            spec,
+            lambda z: np.asarray(SENSOR.depth_rms_m(z, source.camera.fx)),
+            stream=open_stream,
+            acknowledge=lambda message: asked.append(message) or True,
+            on_event=lambda event: stopped.append(event.requested_at),
+            clear_frames=5,
+            max_gap_s=3.0,  # the synthetic 640x480 stream runs at a few fps on a loaded 2-core machine
+        )
+        records = run_cell_loop(
+            CELL, source, source.ground_truth_segmenter(), default_part_library(), driver, execute=True,
+            max_picks=2, watch=watch,
+        )  # fmt: skip
+    finally:
+        for s in opened:
+            s.close()
+        driver.disconnect()
+        driver.shutdown()
+    assert [r.status for r in records] == ["zone_stop", "picked"], [(r.status, r.fault) for r in records]
+    assert "hand in zone 'bin'" in records[0].fault and len(asked) == 1 and "acknowledge" in asked[0]
+    assert len(captures) == 2 and len(opened) == 2  # re-captured and re-planned: a second plan, a second watch
+    assert records[1].start_q is not None and np.max(np.abs(records[1].start_q - HOME)) > 1e-3  # from where it stopped
+    assert watch.events[0].intrusions[0]["label"] == "hand"

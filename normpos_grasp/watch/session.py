@@ -41,7 +41,8 @@ class CellWatch:
     native resolution; stream: opens the depth stream for one execution (None: no zone watch, drift check only);
     acknowledge: asked after every zone stop when `spec.require_ack` (a CLI prompt, a live-view button, a PLC
     input); drift: the per-frame static-reference check (None: none); on_event / on_check: live-view callbacks;
-    clear_frames / clear_timeout_s: how many clear frames in a row a resume needs, and how long to wait for them.
+    clear_frames / clear_timeout_s: how many clear frames in a row a resume needs, and how long to wait for them;
+    max_gap_s: a stream silent this long while the arm moves stops it (a blind watch), s.
     """
 
     def __init__(
@@ -57,6 +58,7 @@ class CellWatch:
         on_check: Callable[[StreamFrame, FrameCheck], None] | None = None,
         clear_frames: int = 10,
         clear_timeout_s: float = 60.0,
+        max_gap_s: float = 0.5,
     ) -> None:
         if spec.require_ack and acknowledge is None:
             raise InputError("the cell's watch.require_ack needs an acknowledgement (a prompt, button or input)")
@@ -66,6 +68,7 @@ class CellWatch:
         self.drift = drift
         self.on_event, self.on_check = on_event, on_check
         self.clear_frames, self.clear_timeout_s = clear_frames, clear_timeout_s
+        self.max_gap_s = max_gap_s
         self.arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
         self.events: list[StopEvent] = []
         self._last: tuple[ZoneWatch, DepthStream] | None = None
@@ -131,6 +134,7 @@ class CellWatch:
             protective=self.spec.stop == "protective",
             q_source=lambda: driver.state().q,
             latency_s=self.spec.latency_s,
+            max_gap_s=self.max_gap_s,
             on_check=self.on_check,
             on_event=heard,
         )
@@ -206,7 +210,7 @@ def synthetic_stream_factory(
 
     def open_stream(frame: RGBDFrame, driver: Any) -> DepthStream:
         counter[0] += 1
-        scene = SyntheticCellStream(frame.camera, truth_depth(), arm, cell.tool, sensor, counter[0])
+        scene = SyntheticCellStream(frame.camera, truth_depth(), arm, cell.tool, sensor, counter[0], fast=True)
         return ThreadedStream(scene, lambda: driver.state().q, None, fps).start()
 
     return open_stream

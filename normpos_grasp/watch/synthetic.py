@@ -86,7 +86,7 @@ def render_spheres(camera: Camera, depth: np.ndarray, segments: ArmSegments) -> 
     h, w = depth.shape
     for a, b, r in zip(segments.start, segments.end, segments.radius, strict=True):
         length = float(np.linalg.norm(b - a))
-        n = max(1, int(np.ceil(length / max(0.25 * r, 0.002)))) + 1
+        n = max(1, int(np.ceil(length / max(0.5 * r, 0.002)))) + 1
         centres = a[None] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None]
         cam = centres @ cfw[:3, :3].T + cfw[:3, 3]
         for c in cam:
@@ -124,7 +124,10 @@ class SyntheticCellStream:
         sensor: object,
         seed: int = 0,
         held_radius_m: float = 0.0,
+        fast: bool = False,
     ) -> None:
+        """fast: keep the sensor's depth noise, quantisation and dropout but skip its stereo shadows, edge and
+        grazing-angle holes (a 640x480 frame then costs a fraction; for live streams on small machines)."""
         self.camera = camera
         self.background = np.asarray(background_m, dtype=np.float32)
         self.arm, self.tool = arm, tool
@@ -137,6 +140,14 @@ class SyntheticCellStream:
             rgb_gradient=0.0,
             rgb_blur_px=0.0,
         )
+        if fast:
+            self.sensor = replace(
+                self.sensor,  # type: ignore[type-var]
+                shadows=False,
+                edge_hole_prob=0.0,
+                grazing_deg=90.0,
+                material_dropout=(),
+            )
         self.rng = np.random.default_rng(seed)
         self.held_radius_m = held_radius_m
         self._rgb = np.zeros((camera.height, camera.width, 3), np.uint8)
