@@ -87,6 +87,9 @@ def signals_raise(warn_repeats: bool = False) -> Iterator[list[int]]:
             level = logging.WARNING if warn_repeats else logging.DEBUG
             log.log(level, "signal %d ignored: the stop for signal %d is in progress", signum, received[0])
             return
+        if _critical.depth > 0:  # raised when the critical section ends (see `uninterrupted`)
+            _critical.pending = signum
+            return
         raise interrupted(signum)
 
     saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -97,6 +100,32 @@ def signals_raise(warn_repeats: bool = False) -> Iterator[list[int]]:
     finally:
         for s, previous in saved.items():
             signal.signal(s, previous)
+
+
+class _Critical:
+    depth = 0
+    pending: int | None = None
+
+
+_critical = _Critical()
+
+
+@contextlib.contextmanager
+def uninterrupted() -> Iterator[None]:
+    """Inside `signals_raise`, hold the exception of a signal that arrives in the block until the block ends: for
+    a few lines that must not be cut in two (writing or reading one message on a pipe: an exception between its
+    header and its body would leave the stream out of step). Main thread only; nests."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _critical.depth += 1
+    try:
+        yield
+    finally:
+        _critical.depth -= 1
+        if _critical.depth == 0 and _critical.pending is not None:
+            signum, _critical.pending = _critical.pending, None
+            raise interrupted(signum)
 
 
 @contextlib.contextmanager

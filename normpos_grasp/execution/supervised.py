@@ -27,6 +27,7 @@ from typing import Any
 
 from normpos_grasp import errors as E
 from normpos_grasp.errors import ConnectionLost, DriverFault, DriverTimeout
+from normpos_grasp.interrupts import uninterrupted
 from normpos_grasp.typing import FloatArray
 
 from .driver import ArmState, DriverOptions, GripperIO, GuardedDriver
@@ -215,7 +216,8 @@ class SupervisedRtdeDriver(GuardedDriver):
         seq = self._seq
         limit = self.call_timeout_s if timeout_s is None else timeout_s
         try:
-            conn.send((seq, name, args))
+            with uninterrupted():  # a signal mid-message would leave the pipe out of step: raised after it
+                conn.send((seq, name, args))
         except (OSError, EOFError, ValueError) as exc:
             raise self._child_lost(self._gone_fault(f"sending {name}: {exc}")) from None
         deadline = time.monotonic() + limit
@@ -229,9 +231,10 @@ class SupervisedRtdeDriver(GuardedDriver):
                     )
                 ) from None
             try:
-                if not conn.poll(remaining):
+                if not conn.poll(remaining):  # a signal may interrupt the wait (the caller then stops the arm)
                     continue
-                reply = conn.recv()
+                with uninterrupted():
+                    reply = conn.recv()
             except (EOFError, OSError) as exc:
                 raise self._child_lost(self._gone_fault(f"{name}: {type(exc).__name__}")) from None
             if reply[0] != seq:

@@ -287,8 +287,20 @@ class Campaign:
         if t_fault is not None:
             result.exit_after_fault_s = t_end - t_fault
 
-    def _wait_moving(self, proc: subprocess.Popen[str], timeout_s: float = 30.0, hold_s: float = 0.0) -> None:
-        """Return once the arm has moved without a pause for `hold_s` (a short move that ends before is skipped)."""
+    def _wait_moving(self, proc: subprocess.Popen[str], timeout_s: float = 120.0, hold_s: float = 0.0) -> None:
+        """Return once the arm has moved without a pause for `hold_s` (a short move that ends before is skipped).
+        The process is killed when it does not get there (a run left behind would drive the next case's arm).
+        The timeout includes the CLI's start-up (imports, the client's child process): tens of s on a loaded
+        machine."""
+        try:
+            self._wait_moving_or_raise(proc, timeout_s, hold_s)
+        except BaseException:
+            if proc.poll() is None:
+                proc.kill()
+            proc.communicate(timeout=10.0)
+            raise
+
+    def _wait_moving_or_raise(self, proc: subprocess.Popen[str], timeout_s: float, hold_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         since = None
         while time.monotonic() < deadline:
@@ -375,7 +387,7 @@ class Campaign:
                 plan, q0 = self._plan_for(kind)
                 proc = self._start(self._cli("execute", str(plan), "--robot", self.host, "--execute"))
             if kind == "run":  # a loop motion (the move home, then the pick's moves) running for 0.4 s
-                self._wait_moving(proc, timeout_s=120.0, hold_s=_INTO_MOVE_S[kind])
+                self._wait_moving(proc, hold_s=_INTO_MOVE_S[kind])
             else:
                 self._wait_moving(proc)
                 time.sleep(_INTO_MOVE_S[kind])  # at cruise speed
