@@ -289,3 +289,21 @@ def test_loop_zone_stop_is_acknowledged_then_replanned_from_a_fresh_capture() ->
     assert len(captures) == 2 and len(opened) == 2  # re-captured and re-planned: a second plan, a second watch
     assert records[1].start_q is not None and np.max(np.abs(records[1].start_q - HOME)) > 1e-3  # from where it stopped
     assert watch.events[0].intrusions[0]["label"] == "hand"
+
+
+def test_run_refuses_a_missing_static_reference_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from normpos_grasp.cli.main import main
+
+    data = _cell_dict()
+    data["templates"] = str(CELL_YAML.parent / data["templates"])
+    data["watch"] = {"zones": [{"name": "bin", "min": [0.28, -0.17, 0.0], "max": [0.72, 0.17, 0.5]}],
+                     "static_reference": "missing.reference.json"}  # fmt: skip
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code = main(["run", "--cell", str(cell_file), "--source", "synthetic:1", "--robot", "sim", "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "missing.reference.json" in err[0]
+    assert not (out / "run.json").exists()  # refused before the first turn

@@ -194,9 +194,28 @@ def run(args: argparse.Namespace) -> int:
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     mode = "execute" if args.execute else "dry run"
+    watch_state: dict[str, Any] = {"zones": [z.name for z in cell.watch.zones] if cell.watch else [], "events": []}
+    last_twin: list[Any] = []
+
+    def on_watch_event(event: Any) -> None:
+        """A zone stop: listed in the live view's state, its blobs drawn into the twin."""
+        from types import SimpleNamespace
+
+        from normpos_grasp.report.live import add_watch_overlay
+
+        watch_state["events"].append(event.to_dict())
+        if view is not None and last_twin and cell.watch is not None:
+            labels = [i.get("label", "object") for i in event.intrusions]
+            blobs = [SimpleNamespace(label=lb, points=pt) for lb, pt in zip(labels, event.points, strict=True)]
+            add_watch_overlay(last_twin[-1], (), blobs)
+            view.publish(last_twin[-1])
+
     with stop_signals():
         try:
             try:
+                from normpos_grasp.cli.run_watch import make_cell_watch
+
+                cell_watch = make_cell_watch(args, cell, source, source_kind, on_watch_event)
                 if args.execute:
                     options = DriverOptions(arrive_tol_rad=args.arrive_tol)
                     spec = cell.gripper_driver
@@ -231,7 +250,13 @@ def run(args: argparse.Namespace) -> int:
                     view = LiveView(port=args.view_port, title=f"normpos-grasp run: {cell.name}").start()
                     print(f"live view: {view.url}", flush=True)
                     if driver is not None:
-                        view.follow(lambda: {"mode": mode, **arm_state_dict(driver.state(), cell.world_from_base)})
+                        view.follow(
+                            lambda: {
+                                "mode": mode,
+                                **arm_state_dict(driver.state(), cell.world_from_base),
+                                **({"watch": watch_state} if cell.watch is not None else {}),
+                            }
+                        )
                     else:
                         view.publish(None, {"mode": mode, "joints_rad": [float(v) for v in cell.home_q]})
 
@@ -239,6 +264,11 @@ def run(args: argparse.Namespace) -> int:
                     if view is None and out is None:
                         return
                     scene = frame_twin(result, cell, candidates=True)
+                    if cell.watch is not None:
+                        from normpos_grasp.report.live import add_watch_overlay
+
+                        add_watch_overlay(scene, cell.watch.zones)
+                        last_twin[:] = [scene]
                     if view is not None:
                         view.publish(scene, None if driver is not None else _dry_state(result, mode))
                     if out is not None:
@@ -293,6 +323,7 @@ def run(args: argparse.Namespace) -> int:
                     gripper=tool,
                     before_execute=before_execute,
                     bundles=bundles,
+                    watch=cell_watch,
                 )
                 if view is not None and args.linger > 0:
                     time.sleep(args.linger)

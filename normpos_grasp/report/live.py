@@ -231,3 +231,17 @@ class LiveView:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def add_watch_overlay(scene: TwinScene, zones: Any, intrusions: Any = ()) -> None:
+    """Draw the zone watch into a twin: each watched zone (`name`, corners `lo`, `hi` in the world, m) as a
+    translucent amber box, each intrusion (`label`, world sample `points` (N, 3)) as red points (docs/watch.md)."""
+    import numpy as np
+
+    for zone in zones:
+        lo, hi = np.asarray(zone.lo, dtype=np.float64), np.asarray(zone.hi, dtype=np.float64)
+        pose = np.eye(4)
+        pose[:3, 3] = (lo + hi) / 2.0
+        scene.add_box(f"watch/zone/{zone.name}", pose, hi - lo, (255, 176, 0), 0.18)
+    for k, intrusion in enumerate(intrusions):
+        scene.add_points(f"watch/intrusion/{k}/{intrusion.label}", intrusion.points, (230, 20, 20))

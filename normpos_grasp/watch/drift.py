@@ -40,12 +40,13 @@ class DriftLimits:
 
 
 class FrameDriftCheck:
-    """Checks frames against a static reference; `check` raises CameraMoved (with the report) when moved."""
+    """Checks frames against a static reference; `check` raises CameraMoved (with the report) when moved. camera:
+    the intrinsics the reference was made with (None: each frame's own camera)."""
 
     def __init__(
         self,
         reference: StaticReference,
-        camera: Camera,
+        camera: Camera | None,
         limits: DriftLimits | None = None,
         options: DriftOptions | None = None,
     ) -> None:
@@ -57,7 +58,8 @@ class FrameDriftCheck:
     def measure(self, frame: RGBDFrame) -> DriftReport:
         """The drift report of `frame` (never raises for drift; CalibrationError when under 4 points are found)."""
         pixels = locate_reference_points(self.reference, frame.rgb, self.options)
-        return check_drift(self.camera, self.reference, pixels, self.options, depth_m=frame.depth_m)
+        camera = self.camera if self.camera is not None else frame.camera
+        return check_drift(camera, self.reference, pixels, self.options, depth_m=frame.depth_m)
 
     def moved(self, report: DriftReport) -> bool:
         lim = self.limits

@@ -51,13 +51,14 @@ class Stopper(Protocol):
 @dataclass(frozen=True)
 class StopEvent:
     """A stop the watch asked for: frame_stamp (arrival of the frame that showed it), requested_at, both
-    time.monotonic() s; reason; intrusions as dicts; frame index."""
+    time.monotonic() s; reason; intrusions as dicts; frame index; points: world samples (N, 3) of each intrusion."""
 
     frame_stamp: float
     requested_at: float
     reason: str
     intrusions: tuple[dict[str, Any], ...] = ()
     frame_index: int = -1
+    points: tuple[FloatArray, ...] = field(default=(), repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -150,7 +151,8 @@ class ZoneWatch:
         now = time.monotonic()
         intr = tuple(i.to_dict() for i in check.intrusions) if check is not None else ()
         stamp = frame.stamp if frame is not None else now
-        event = StopEvent(stamp, now, reason, intr, frame.index if frame is not None else -1)
+        pts = tuple(i.points for i in check.intrusions) if check is not None else ()
+        event = StopEvent(stamp, now, reason, intr, frame.index if frame is not None else -1, pts)
         detail = {"frame_stamp": stamp, "requested_at": now, **event.to_dict()}
         self.stopper.request_stop(reason, self.protective, detail)
         self.log.events.append(event)
