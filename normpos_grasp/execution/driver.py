@@ -279,7 +279,14 @@ class GuardedDriver(abc.ABC):
     def disconnect(self) -> None:
         """Stop the arm if it still moves (every way out stops it first), then close the connection."""
         try:
-            if self._backend_connected() and float(np.max(np.abs(self._backend_state().qd))) > 1e-4:
+            # after a protective or emergency stop the controller is already bringing the arm to rest (its program
+            # has ended, so a stop command would only wait for a script that no longer runs)
+            safety_stopped = isinstance(self._fault, ProtectiveStop | EmergencyStop)
+            if (
+                not safety_stopped
+                and self._backend_connected()
+                and float(np.max(np.abs(self._backend_state().qd))) > 1e-4
+            ):
                 log.warning("disconnect while the arm moves: stopping it first")
                 self._backend_stop(self.options.halt_decel_for(self._peak_qd))
         except (OSError, RuntimeError, DriverFault) as exc:
