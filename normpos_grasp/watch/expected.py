@@ -26,6 +26,9 @@ from normpos_grasp.typing import BoolArray, FloatArray
 from normpos_grasp.watch.zones import ArmSegments
 
 SigmaFn = Callable[[FloatArray], FloatArray]  # depth noise RMS (m) of one frame at depth z (m)
+# Pixels the arm hid in the reference: anything nearer than the static scene by more than this is new even before
+# the pixel is learned (parts in a bin rest lower than this), m.
+UNKNOWN_HEIGHT_M = 0.2
 
 
 def downsample_depth(depth_m: FloatArray, factor: int) -> np.ndarray:
@@ -263,6 +266,9 @@ class ExpectedScene:
         nearest = np.where(known, np.minimum(nearest, ref), 0.0).astype(np.float32)
         self.reference = ref.astype(np.float32)
         self.limit = np.where(known, nearest - self._threshold(nearest), np.float32(0.0)).astype(np.float32)
+        # until learned, an unknown pixel still flags anything more than UNKNOWN_HEIGHT_M nearer than the static scene
+        guess = np.where(static > 0, static - np.float32(UNKNOWN_HEIGHT_M), np.float32(0.0)).astype(np.float32)
+        self.limit = np.where(self.unknown, guess, self.limit).astype(np.float32)
         self.rays = _rays(self.camera).astype(np.float32)
 
     def _threshold(self, z: np.ndarray) -> np.ndarray:
@@ -271,10 +277,11 @@ class ExpectedScene:
 
     def learn(self, depth: np.ndarray, covered: BoolArray) -> BoolArray:
         """Adopt `depth` (reduced frame) where the reference is still unknown and the arm's predicted silhouette
-        `covered` leaves the pixel free; returns the pixels adopted (they are not tested in this frame)."""
+        `covered` leaves the pixel free and the depth is no nearer than the static scene allows (its limit); returns
+        the pixels adopted (not nearer than their limit, so no candidates in this frame)."""
         if not self.unknown.any():
             return np.zeros(depth.shape, dtype=bool)
-        take = self.unknown & ~covered & (depth > 0)
+        take = self.unknown & ~covered & (depth > 0) & (depth >= self.limit)
         if take.any():
             z = depth[take]
             self.reference[take] = z
