@@ -54,6 +54,9 @@ def main() -> None:
                 for case in cases:
                     r = campaign.run(case)
                     results.append(r)
+                    if args.json is not None:  # every run as it ends (a long campaign may be cut short)
+                        with args.json.with_suffix(".jsonl").open("a") as out:
+                            out.write(json.dumps(r.to_dict(), default=str) + "\n")
                     flag = "ok" if not r.problems() else "; ".join(r.problems())
                     rest = "-" if r.rest_s is None else f"{r.rest_s * 1000:.0f} ms"
                     line = f"exit {r.exit_code}  rest {rest}  overruns {r.emu_overruns}  {flag}"
