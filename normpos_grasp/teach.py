@@ -19,7 +19,8 @@ Steps of `teach_part` (all lengths in metres once loaded):
    with a 2 mm / 4 degree placement error, and with a fast transfer (a shake: twice the acceleration). A grasp's
    success rate is held / trials over every pose it was tried in; grasps below `min_success` are dropped, tried
    ones rank by their rate (priority), untried ones (side grasps) are kept with their synthesis quality. The
-   validation stops at the wall-time budget; grasps not reached are kept untried and the report says so.
+   validation stops at the wall-time budget (the first grasp is always tried); grasps not reached are kept
+   untried and the report says so.
 5. The template is written (template.yaml + mesh in mm + obj_id + a `teach:` record of all of the above), read
    back, and its fit preparation stored in its `.prepared/` folder (templates.prepared), so the first fit of a
    process pays no preparation; report.html shows the resting poses and the tried grasps with their rates.
@@ -82,7 +83,8 @@ class TeachOptions:
     material: density for the mass of bare meshes (sim.parts.DENSITIES keys). rest_samples: gravity directions of
     the resting-pose estimate. max_poses: resting poses whose grasps are validated (likeliest first).
     grasps_per_pose: grasps tried per resting pose. trials: trials per grasp and pose (1 nominal, 2 displaced,
-    3 shaken). min_success: grasps tried with a lower success rate are dropped. seed: every random draw.
+    3 shaken). min_success: grasps tried with a lower success rate are dropped. max_grasps: most grasps stored
+    (every tried and kept one, then untried ones by synthesis quality). seed: every random draw.
     report: write report.html.
     """
 
@@ -95,6 +97,7 @@ class TeachOptions:
     grasps_per_pose: int = 5
     trials: int = 3
     min_success: float = 0.5
+    max_grasps: int = 300
     seed: int = 0
     report: bool = True
 
@@ -488,7 +491,9 @@ def validate_grasps(
         for _, gid, g, w_tcp in ranked[: options.grasps_per_pose]:
             outcomes = []
             for k in range(options.trials):
-                if time.perf_counter() > deadline:
+                if time.perf_counter() > deadline and out:  # the first grasp always gets all its trials
+                    if outcomes:
+                        out.append(GraspTrial(gid, p_idx, tuple(outcomes)))
                     return out, True
                 tcp = w_tcp
                 physics = nominal
@@ -625,13 +630,17 @@ def teach_part(
         c[0] += tr.held
         c[1] += len(tr.outcomes)
     success = {gid: held / n for gid, (held, n) in counts.items() if n}
-    kept, dropped = [], []
+    kept, dropped, untried = [], [], []
     for g in grasps:
         rate = success.get(g.id)
         if rate is not None and rate < opts.min_success:
             dropped.append(g.id)
-            continue
-        kept.append(g if rate is None else replace(g, priority=float(g.priority) + 2.0 * rate))
+        elif rate is None:
+            untried.append(g)
+        else:
+            kept.append(replace(g, priority=float(g.priority) + 2.0 * rate))
+    untried.sort(key=lambda g: (-g.priority, g.id))
+    kept.extend(untried[: max(0, opts.max_grasps - len(kept))])  # the best untried ones, for the other poses
     if not kept:
         raise TemplateError(
             f"'{template.name}': every grasp tried failed in physics ({len(dropped)} grasps); is the part too heavy, "
@@ -712,7 +721,7 @@ def _amend_yaml(path: Path, record: dict[str, Any], success: dict[str, float], c
             g["success_rate"] = round(success[g["id"]], 4)
             g["trials"] = int(counts[g["id"]][1])
     spec["teach"] = record
-    atomic_write_text(path, yaml.safe_dump(spec, sort_keys=False))
+    atomic_write_text(path, yaml.safe_dump(spec, sort_keys=False, default_flow_style=None))  # vectors on one line
 
 
 def next_obj_id(out: Path, taken: Sequence[int] = ()) -> int:

@@ -124,3 +124,36 @@ def test_bop_models_folder_loads_as_library() -> None:
     assert t.name == "obj_000005" and t.units == "mm"
     assert t.diameter_m == pytest.approx(0.20140, abs=2e-4)  # models_info.json: 201.40 mm
     assert np.allclose(t.extents_m, [0.10079, 0.18180, 0.19373], atol=2e-4)
+
+
+def _one_template(root: Path, name: str, obj_id: int | None = None) -> Path:
+    folder = root / name
+    folder.mkdir(parents=True)
+    trimesh.creation.box(extents=(30.0, 20.0, 10.0)).export(str(folder / "mesh.stl"))
+    spec = f"name: {name}\nunits: mm\nshape: box\n" + (f"obj_id: {obj_id}\n" if obj_id is not None else "")
+    (folder / "template.yaml").write_text(spec)
+    return folder
+
+
+def test_resolve_library_mixes_builtin_and_user_parts_with_stable_ids(tmp_path: Path) -> None:
+    from normpos_grasp.templates.library import resolve_library
+
+    _one_template(tmp_path / "lib", "spacer")  # no obj_id: the next above every declared one
+    _one_template(tmp_path / "lib", "washer", 40)
+    assert [t.obj_id for t in resolve_library()] == [1, 2, 3, 4, 5, 6, 7, 8]  # the default: the built-in parts
+    mixed = resolve_library(["builtin", str(tmp_path / "lib")])
+    assert mixed.get("washer").obj_id == 40 and mixed.get("spacer").obj_id == 41 and mixed.get("ring").obj_id == 8
+    assert resolve_library([str(tmp_path / "lib"), "builtin"]).get("spacer").obj_id == 41  # order does not matter
+    with pytest.raises(TemplateError, match=r"unknown part names \['nut'\].*spacer \(41\)"):
+        mixed.subset(["nut"])
+
+
+def test_resolve_library_refuses_clashing_names_and_ids(tmp_path: Path) -> None:
+    from normpos_grasp.templates.library import resolve_library
+
+    _one_template(tmp_path / "a", "cube")
+    with pytest.raises(TemplateError, match="part name 'cube' is in both builtin and"):
+        resolve_library(["builtin", str(tmp_path / "a")])
+    _one_template(tmp_path / "b", "spacer", 3)
+    with pytest.raises(TemplateError, match="obj_id 3 is used by 'bar'"):
+        resolve_library(["builtin", str(tmp_path / "b")])
