@@ -489,7 +489,7 @@ def validate_grasps(
             ranked.append((g.priority, g.id, g, w_tcp))
         ranked.sort(key=lambda r: (-r[0], r[1]))
         for _, gid, g, w_tcp in ranked[: options.grasps_per_pose]:
-            outcomes = []
+            outcomes: list[str] = []
             for k in range(options.trials):
                 if time.perf_counter() > deadline and out:  # the first grasp always gets all its trials
                     if outcomes:
@@ -630,7 +630,9 @@ def teach_part(
         c[0] += tr.held
         c[1] += len(tr.outcomes)
     success = {gid: held / n for gid, (held, n) in counts.items() if n}
-    kept, dropped, untried = [], [], []
+    kept: list[GraspAnnotation] = []
+    dropped: list[str] = []
+    untried: list[GraspAnnotation] = []
     for g in grasps:
         rate = success.get(g.id)
         if rate is not None and rate < opts.min_success:
@@ -658,7 +660,7 @@ def teach_part(
     prepare(written)  # stored under folder/.prepared: the first fit of a process loads it
     timings["write_prepare"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t0
-    untried = sum(1 for g in kept if g.id not in success)
+    n_untried = sum(1 for g in kept if g.id not in success)
     part = TaughtPart(
         written,
         template.report if isinstance(template.report, MeshReport) else check_mesh(template.mesh, template.name)[1],
@@ -667,7 +669,7 @@ def teach_part(
         tuple(trials),
         success,
         tuple(dropped),
-        untried,
+        n_untried,
         timings,
         folder,
         spent,
