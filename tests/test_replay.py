@@ -47,7 +47,7 @@ def dry_bundles(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
 
 
 def test_replay_reproduces_the_plan_byte_for_byte(dry_bundles: list[Path], tmp_path: Path) -> None:
-    bundle = dry_bundles[1]  # the first one is replayed in a fresh process below
+    bundle = dry_bundles[1]
     out = tmp_path / "out"
     assert main(["replay", str(bundle), "--out", str(out)]) == 0
     recorded = json.loads((bundle / "plan.json").read_bytes())
@@ -61,19 +61,6 @@ def test_replay_reproduces_the_plan_byte_for_byte(dry_bundles: list[Path], tmp_p
     # the second turn planned from where the first plan ended: the bundle keeps that start
     first = json.loads((dry_bundles[0] / "plan.json").read_bytes())
     assert load_bundle(dry_bundles[1]).start_q.tolist() == first["joint_waypoints"][-1]["q"]
-
-
-def test_replay_in_a_fresh_process_is_identical(dry_bundles: list[Path], tmp_path: Path) -> None:
-    env = dict(os.environ, NORMPOS_GRASP_LOG_DIR=str(tmp_path))
-    done = subprocess.run(
-        [sys.executable, "-m", "normpos_grasp.cli.main", "replay", str(dry_bundles[0])],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
-    assert done.returncode == 0, done.stdout + done.stderr
-    assert "identical (without timing_ms)" in done.stdout
 
 
 def test_bundle_holds_what_the_cycle_saw(dry_bundles: list[Path]) -> None:
@@ -195,31 +182,43 @@ def test_depth_segmenter_bundle_segments_again_and_matches(tmp_path: Path) -> No
     assert "segmented again" in masks.difference and "IoU min 1.0000" in masks.difference
 
 
-def test_executed_cycle_keeps_report_and_state_trace(tmp_path: Path) -> None:
-    from normpos_grasp.execution import SafetyLimits, SimDriver
+def test_executed_cycle_keeps_report_and_rtde_state_trace(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`run --execute --bundles` through the real ur_rtde client on the loopback controller: the bundle keeps the
+    execution report and the RTDE state trace, and `normpos-grasp replay` in a fresh process reproduces the plan."""
+    from normpos_grasp.sim.ur_emulator.process import EmulatorProcess
 
-    cell = resolve_cell("ur5e_bin_parallel")
-    source = SyntheticBinSource(cell, count=2, seed=0, validate_physics=False)
-    segmenter = source.ground_truth_segmenter()
-    driver = SimDriver(SafetyLimits.from_cell(cell), q_home=np.asarray(cell.home_q, dtype=np.float64))
-    driver.connect()
-    try:
-        with BundleRecorder(tmp_path, segmenter, driver=driver, trace_period_s=0.05) as recorder:
-            records = run_cell_loop(cell, source, segmenter, default_part_library(), driver, execute=True,
-                                    max_picks=1, options=OPTIONS, bundles=recorder)  # fmt: skip
-    finally:
-        driver.disconnect()
-        driver.shutdown()
-    assert records[0].status == "picked"
-    execution = json.loads((recorder.saved[0] / "execution.json").read_bytes())
-    assert execution["report"]["status"] == "executed" and execution["report"]["commands_sent"] > 0
+    host = "127.0.0.122"
+    bundles = tmp_path / "bundles"
+    with EmulatorProcess(host, "ur5e", log_path=tmp_path / "emulator.log", verbose=0):
+        code = main(["run", "--cell", "ur5e_bin_parallel", "--source", "synthetic:2", "--seed", "0", "--robot", host,
+                     "--execute", "--max-picks", "1", "--bundles", str(bundles)])  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "1 replay bundles in" in printed, printed
+    (bundle,) = list_bundles(bundles)
+    cycle = json.loads((bundle / "cycle.json").read_bytes())
+    execution = json.loads((bundle / "execution.json").read_bytes())
     samples = execution["trace"]["samples"]
-    assert len(samples) > 10 and all(len(s["q"]) == 6 for s in samples)
-    moved = np.ptp(np.asarray([s["q"] for s in samples]), axis=0).max()
-    assert moved > 0.1  # the trace saw the arm move
-    plan_end = json.loads((recorder.saved[0] / "plan.json").read_bytes())["joint_waypoints"][-1]["q"]
-    assert np.abs(np.asarray(samples[-1]["q"]) - plan_end).max() < 0.01
-    assert assert_replays(recorder.saved[0]).identical
+    assert len(samples) > 5 and all(len(s["q"]) == 6 and len(s["qd"]) == 6 for s in samples)
+    controller_t = [s["controller_time_s"] for s in samples]
+    assert controller_t == sorted(controller_t)  # the controller's own clock, read over RTDE
+    if cycle["status"] == "driver_fault":  # a loaded machine can stall the stream: the bundle keeps the fault
+        assert code == 2 and cycle["fault"] and execution["report"] is None
+    else:
+        assert code in (0, 1) and cycle["status"] in ("picked", "pick_failed"), printed
+        assert execution["report"]["status"] in ("executed", "grip_failed")
+        assert execution["report"]["commands_sent"] > 0
+        moved = np.ptp(np.asarray([s["q"] for s in samples]), axis=0).max()
+        assert moved > 0.1  # the trace saw the arm move
+    env = dict(os.environ, NORMPOS_GRASP_LOG_DIR=str(tmp_path))
+    done = subprocess.run(
+        [sys.executable, "-m", "normpos_grasp.cli.main", "replay", str(bundle)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "identical (without timing_ms)" in done.stdout
 
 
 def test_options_round_trip_exactly_and_strictly() -> None:

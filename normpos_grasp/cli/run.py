@@ -261,6 +261,8 @@ def run(args: argparse.Namespace) -> int:
                         view.publish(None, {"mode": mode, "joints_rad": [float(v) for v in cell.home_q]})
 
                 def on_plan(result: FrameResult) -> None:
+                    if bundles is not None:
+                        bundles.wait()  # the previous turn's bundle is written before this plan moves the arm
                     if view is None and out is None:
                         return
                     scene = frame_twin(result, cell, candidates=True)

@@ -58,6 +58,7 @@ from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.template import Template
 from normpos_grasp.replay.errors import BundleError
 from normpos_grasp.replay.options import options_from_json, options_to_json
+from normpos_grasp.replay.rtde_trace import RtdeTrace
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:
@@ -70,6 +71,8 @@ BUNDLE_FORMAT = "normpos-grasp/replay-bundle@1"
 MANIFEST = "manifest.json"
 #: packages whose versions a manifest records (absent ones as null)
 RECORDED_PACKAGES = ("numpy", "scipy", "trimesh", "opencv-python-headless", "onnxruntime", "pin", "ruckig", "mujoco")
+#: drivers whose state trace comes from a separate RTDE connection (replay.rtde_trace)
+RTDE_DRIVERS = ("RtdeDriver", "SupervisedRtdeDriver")
 _REQUIRED = ("cycle.json", "options.json", "cell.yaml", "camera.json", "frame.npz", "instances.json", "fits.json")
 
 
@@ -373,13 +376,15 @@ def _cell_bytes(cell: CellConfig) -> bytes:
 # ----------------------------------------------------------------------------------------------- the recorder
 class BundleRecorder:
     """Saves one bundle per loop record into `directory` (`run_cell_loop(..., bundles=recorder)`), named
-    `<start UTC>-cycle<NNN>`; with a driver, samples `driver.state()` every `trace_period_s` seconds in a background
-    thread and gives each bundle the samples since the previous one (the cycle's state trace).
+    `<start UTC>-cycle<NNN>`. With a driver, a state trace is sampled every `trace_period_s` seconds and each bundle
+    gets the samples since the previous one: for an RTDE driver by `replay.rtde_trace` (its own process and RTDE
+    connection, never the driver's), for any other driver (the simulated one) by `driver.state()` from a thread.
 
     segmenter: the segmenter of the loop (recorded by `segmenter_record`); library_sources: the
     `templates.library.resolve_library` entries the loop's templates come from (empty: the built-in parts).
-    background: write bundles in one writer thread while the loop goes on (the loop waits for none); a failed
-    write is raised by the next `save` and by `close`. `saved` lists the bundles written so far, in order.
+    background: write bundles in one writer thread while the loop goes on; `wait()` blocks until they are written
+    (`run` calls it before each plan is executed, so no write overlaps arm motion); a failed write is raised by
+    the next `save`, `wait` or `close`. `saved` lists the bundles written so far, in order.
     Use as a context manager: leaving it waits for pending writes and stops the sampler."""
 
     def __init__(
@@ -389,7 +394,7 @@ class BundleRecorder:
         *,
         library_sources: Sequence[str | Path] = (),
         driver: ArmDriver | None = None,
-        trace_period_s: float = 0.1,
+        trace_period_s: float = 0.2,
         background: bool = False,
     ) -> None:
         if not trace_period_s > 0.0:
@@ -409,12 +414,19 @@ class BundleRecorder:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._trace_source = ""
         self._writer = ThreadPoolExecutor(1, thread_name_prefix="bundle-writer") if background else None
         self._pending: list[Future[Path]] = []
         self._failure: BaseException | None = None
-        if driver is not None:
+        self._rtde: RtdeTrace | None = None
+        host = getattr(driver, "host", None)
+        if driver is not None and type(driver).__name__ in RTDE_DRIVERS and isinstance(host, str):
+            self._rtde = RtdeTrace(host, self._period)
+            self._trace_source = f"ur_rtde RTDEReceiveInterface on its own connection to {host} (replay.rtde_trace)"
+        elif driver is not None:
             self._thread = threading.Thread(target=self._sample, args=(driver,), name="bundle-trace", daemon=True)
             self._thread.start()
+            self._trace_source = "driver.state() sampled by the bundle recorder"
 
     def __enter__(self) -> BundleRecorder:
         return self
@@ -434,9 +446,17 @@ class BundleRecorder:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
+        if self._rtde is not None:
+            self._rtde.close()
         if self._writer is not None:
             self._writer.shutdown(wait=True)
             self._writer = None
+        self._raise_failure()
+
+    def wait(self) -> None:
+        """Block until every pending bundle is written; raises a write that failed."""
+        for future in list(self._pending):
+            future.exception()  # waits
         self._raise_failure()
 
     def _raise_failure(self) -> None:
@@ -459,10 +479,12 @@ class BundleRecorder:
         with self._lock:
             samples, self._samples = self._samples, []
             note = self._trace_note
+        if self._rtde is not None:
+            samples, note = self._rtde.take()
         trace = None
-        if self._thread is not None or samples:
+        if self._trace_source:
             trace = {
-                "source": "driver.state() sampled by the bundle recorder",
+                "source": self._trace_source,
                 "period_s": self._period,
                 "note": note,
                 "samples": samples,
@@ -576,8 +598,11 @@ def load_bundle(path: str | Path) -> Bundle:
         meta = cycle["frame"]
         frame = RGBDFrame(rgb, depth, camera, float(meta["stamp"]), int(meta["scene_id"]), int(meta["im_id"]))
         entries = _read_json(root / "instances.json")
-        if len(entries) != len(masks):
-            raise BundleError(f"bundle {root}: {len(entries)} instances but {len(masks)} masks")
+        if len(entries) != len(masks) or masks.shape[1:] != depth.shape or masks.dtype != np.bool_:
+            raise BundleError(
+                f"bundle {root}: {len(entries)} instances but masks {masks.dtype} {masks.shape} for a frame of "
+                f"{depth.shape}"
+            )
         instances = tuple(
             Instance(np.asarray(m, dtype=bool), str(e["label"]), float(e["score"]), int(e["instance_id"]),
                      int(e["source_id"]))
