@@ -40,6 +40,9 @@ SUMMARY_KEYS = {
     "picks_succeeded",
     "parts_left_in_bin",
     "stopped_because",
+    "stop",
+    "stop_parts",
+    "pushes",
     "driver",
     "segmenter",
     "wall_time_s",
@@ -67,8 +70,13 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         "--emulator-host",
         DEMO_HOST,
     ]
-    code = main(argv)
-    return {"code": code, "out": out}
+    import contextlib
+    import io
+
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        code = main(argv)
+    return {"code": code, "out": out, "stdout": stdout.getvalue()}
 
 
 def test_demo_exits_0_through_the_emulator(demo: dict[str, Any]) -> None:
@@ -80,6 +88,11 @@ def test_demo_exits_0_through_the_emulator(demo: dict[str, Any]) -> None:
     assert 0 <= summary["picks_succeeded"] <= summary["picks_attempted"] <= 2
     assert 0 <= summary["parts_left_in_bin"] <= 2
     assert summary["parts_left_in_bin"] == 2 - summary["picks_succeeded"]
+    # every stop says why, in one line (the same line the console prints)
+    assert summary["stop"] and "\n" not in summary["stop"]
+    assert f"stopped: {summary['stop']}" in demo["stdout"]
+    if summary["parts_left_in_bin"] == 0:
+        assert summary["stop"] == "the bin is empty"
     assert len(summary["picks"]) >= 1
     row = summary["picks"][0]
     for key in ("objects", "fits accepted", "target", "grasp", "joint path (rad)", "outcome"):

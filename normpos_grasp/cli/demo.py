@@ -84,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
         f"picked {summary['picks_succeeded']} of {summary['picks_attempted']} attempted; "
         f"{summary['parts_left_in_bin']} parts left; {summary['wall_time_s']} s"
     )
+    for k, push in enumerate(summary.get("pushes", [])):
+        print(f"push {k + 1} after pick {push['after_pick']}: {push['outcome']}, push {push['push_m']} m")
+    print(f"stopped: {summary['stop']}")
     print(f"report: {result.files['report']}  (3D twin: {result.files['scene']})")
     faults = [r.fault for r in result.records if r.status in ("driver_fault", "unsafe_plan")]
     if faults:

@@ -33,6 +33,7 @@ from normpos_grasp.measure.measure import MeasureOptions
 from normpos_grasp.perception.change import mask_iou
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, ReuseOptions, perceive
 from normpos_grasp.planning.evaluate import EvaluationOptions
+from normpos_grasp.planning.plan import stop_line
 from normpos_grasp.planning.push import PushHand, plan_push
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
@@ -431,7 +432,8 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         pipeline_ms = (time.perf_counter() - t0) * 1e3
         visib = np.asarray(frame.visib_fractions, dtype=np.float64)
         if plan.status != "ok" or plan.chosen is None:
-            reason = _no_grasp_reason(plan.counts)
+            # the parts left, each with its commonest rejections and its closest call
+            reason = stop_line(plan) if plan.targets else _no_grasp_reason(plan.counts)
             if not instances:
                 cause, reason = "segmentation_miss", "the segmenter found no instance"
             elif not any(f.accepted for f in fits) and not plan.targets:
