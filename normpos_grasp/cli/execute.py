@@ -137,35 +137,43 @@ def _limits(
     return bare, None, None
 
 
-def _gripper_wiring(args: argparse.Namespace, spec: GripperDriverSpec | None) -> GripperIO:
-    """The arm's gripper outputs: the cell's `gripper.driver`, else the command line's (defaults 0, 1, none)."""
-    given = (
-        ("--close-output", args.close_output),
-        ("--open-output", args.open_output),
-        ("--grip-input", args.grip_input),
-    )
-    flags = [flag for flag, value in given if value is not None]
-    if spec is not None:
-        if flags:
-            raise InputError(
-                f"the cell configures the gripper (gripper.driver, type {spec.kind}); {flags[0]} would contradict it: "
-                "drop the flag or the cell's driver section"
-            )
-        return gripper_io(spec) or GripperIO()
+def _flag_wiring(args: argparse.Namespace) -> GripperIO:
+    """The gripper outputs the command line gives (defaults 0, 1, none); validated before anything else, so bad
+    I/O indices are refused first and never reach a moving arm."""
     open_output = 1 if args.open_output is None else args.open_output
     grip_input = -1 if args.grip_input is None else args.grip_input
-    return GripperIO(  # validated before anything moves: bad I/O indices never reach a moving arm
+    return GripperIO(
         close_output=0 if args.close_output is None else args.close_output,
         open_output=None if open_output < 0 else open_output,
         grip_detect_input=None if grip_input < 0 else grip_input,
     )
 
 
+def _gripper_wiring(args: argparse.Namespace, spec: GripperDriverSpec | None, flag_wiring: GripperIO) -> GripperIO:
+    """The arm's gripper outputs: the cell's `gripper.driver` (a wiring flag next to it is refused), else the
+    command line's."""
+    given = (
+        ("--close-output", args.close_output),
+        ("--open-output", args.open_output),
+        ("--grip-input", args.grip_input),
+    )
+    flags = [flag for flag, value in given if value is not None]
+    if spec is None:
+        return flag_wiring
+    if flags:
+        raise InputError(
+            f"the cell configures the gripper (gripper.driver, type {spec.kind}); {flags[0]} would contradict it: "
+            "drop the flag or the cell's driver section"
+        )
+    return gripper_io(spec) or GripperIO()
+
+
 def run(args: argparse.Namespace) -> int:
+    flag_wiring = _flag_wiring(args)
     plan = load_plan(args.plan)
     parsed = parse_plan(plan)
     limits, cell_serial, gripper_spec = _limits(args, plan, parsed.robot)
-    gripper = _gripper_wiring(args, gripper_spec)
+    gripper = _gripper_wiring(args, gripper_spec, flag_wiring)
     serial = args.robot_serial or cell_serial
     if not args.execute:
         report = execute_plan(None, plan, limits, dry_run=True)
