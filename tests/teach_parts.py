@@ -30,7 +30,7 @@ def _extrude(profile: list[tuple[float, float]], triangles: list[tuple[int, int,
 def t_profile() -> trimesh.Trimesh:
     """T-profile 60 long: flange 30 x 5, web 6 thick, 25 high."""
     prof = [(-15, 0), (15, 0), (15, 5), (3, 5), (3, 25), (-3, 25), (-3, 5), (-15, 5)]
-    tris = [(0, 1, 2), (0, 2, 7), (7, 2, 3), (7, 3, 6), (6, 3, 4), (6, 4, 5)]
+    tris = [(0, 1, 2), (0, 2, 3), (0, 3, 6), (0, 6, 7), (6, 3, 4), (6, 4, 5)]
     return _extrude(prof, tris, 60.0)
 
 
