@@ -42,7 +42,9 @@ class DemoOptions:
     part_names: library parts to draw from (empty: all); library: part libraries (templates.library.resolve_library
     entries: folders or 'builtin'; empty = the built-in parts); max_pushes: when no grasp is feasible, push a part
     (planned on the perceived scene, `planning.push`; run on the arm and replayed in MuJoCo on the true bin) by
-    `push_m` metres and look again, at most this many times."""
+    `push_m` metres and look again, at most this many times; pick_unmatched: a part whose template fit was
+    rejected is still picked as a box / plate from its measured oriented box (`PlanOptions.pick_unmatched`, as in
+    `simulate`) instead of staying clutter."""
 
     cell: str = "ur5e_bin_parallel"
     seed: int = 0
@@ -57,6 +59,7 @@ class DemoOptions:
     library: tuple[str, ...] = ()
     max_pushes: int = 3
     push_m: float = 0.05
+    pick_unmatched: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,11 +175,14 @@ def _pick_and_push(
 
     from normpos_grasp.errors import PlanningError
     from normpos_grasp.loop import _physics_gripper
+    from normpos_grasp.pipeline import PipelineOptions
+    from normpos_grasp.planning.plan import PlanOptions
     from normpos_grasp.planning.push import PushHand, plan_push, push_motion
     from normpos_grasp.sim.cell_scene import remove_parts
     from normpos_grasp.sim.physics import GripperSpec
     from normpos_grasp.sim.physics_push import simulate_push
 
+    pipeline = PipelineOptions(plan=PlanOptions(pick_unmatched=opts.pick_unmatched))
     records: list[PickRecord] = []
     pushes: list[dict[str, Any]] = []
     offset = 0
@@ -188,7 +194,7 @@ def _pick_and_push(
     while True:
         turn = run_cell_loop(
             cell, source, segmenter, library, driver, execute=True, max_picks=opts.max_picks - len(records),
-            on_pick=heard,
+            on_pick=heard, options=pipeline,
         )  # fmt: skip
         records.extend(replace(r, index=r.index + offset) for r in turn)
         offset = len(records)
