@@ -136,3 +136,53 @@ def test_factory_registers_cad_and_auto_falls_back_to_it() -> None:
     auto = choose_segmenter("auto", labels={"nut_m12"}, library=lib)  # a label the bundled model does not know
     assert auto.kind == "cad"
     assert choose_segmenter("auto", labels={"nut_m12"}).kind == "depth"  # no library: the depth segmenter
+
+
+def _hex_nut():  # type: ignore[no-untyped-def]
+    import trimesh
+
+    from normpos_grasp.records.template import Symmetry, Template
+
+    mesh = trimesh.creation.cylinder(radius=0.0139, height=0.011, sections=6)  # 24 mm across flats
+    rots = []
+    for k in range(1, 6):
+        r = np.eye(4)
+        r[:3, :3] = Rotation.from_euler("z", 60 * k, degrees=True).as_matrix()
+        rots.append(r)
+    return Template(name="hexnut", label="hexnut", mesh=mesh, symmetry=Symmetry(discrete=tuple(rots)))
+
+
+def test_symmetry_axis_of_discrete_groups() -> None:
+    from normpos_grasp.templates.edges import symmetry_axis
+
+    axis, period = symmetry_axis(_hex_nut())  # type: ignore[misc]
+    assert np.allclose(np.abs(axis), [0, 0, 1]) and np.isclose(np.degrees(period), 60.0)
+    cyl = {p.name: p for p in default_part_library()}["cylinder"]  # continuous axis plus a half turn only
+    assert symmetry_axis(cyl) is None
+
+
+def test_refine_turn_finds_the_nut_flats_on_the_outline() -> None:
+    from normpos_grasp.camera.model import Camera
+    from normpos_grasp.camera.render import render
+    from normpos_grasp.templates.edges import refine_turn
+
+    nut = _hex_nut()
+    prep = prepare(nut)
+    cam = Camera(np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]]), 640, 480)
+    truth = np.eye(4)
+    truth[:3, :3] = Rotation.from_euler("xyz", [180 + 8, 5, 17], degrees=True).as_matrix()  # seen from above
+    truth[:3, 3] = [0.01, -0.005, 0.55]
+    depth = render(cam, [(nut.mesh, truth)]).depth_m
+    floor = depth == 0
+    depth[floor] = 0.58  # a support surface behind it
+    turned = truth.copy()
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_euler("z", 14, degrees=True).as_matrix()
+    turned = truth @ off  # 14 degrees off about the nut's axis: the same top face, other corners
+    out, turn = refine_turn(nut, prep, turned, cam.K, depth, 0.003)
+    rel = np.linalg.inv(truth[:3, :3]) @ out[:3, :3]
+    ang = np.degrees(np.arctan2(rel[1, 0], rel[0, 0])) % 60.0
+    assert turn != 0.0
+    assert min(ang, 60.0 - ang) < 2.0  # back on the flats (modulo the 60-degree symmetry)
+    same, none = refine_turn(nut, prep, truth, cam.K, depth, 0.003)
+    assert none == 0.0 or abs(np.degrees(none)) < 2.0
