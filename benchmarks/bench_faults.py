@@ -27,6 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from normpos_grasp.errors import DriverTimeout
 from normpos_grasp.sim.ur_emulator.campaign import CASES, Campaign, summarize
 
 
@@ -52,7 +53,11 @@ def main() -> None:
         ):
             for _ in range(args.runs):
                 for case in cases:
-                    r = campaign.run(case)
+                    try:
+                        r = campaign.run(case)
+                    except DriverTimeout as exc:  # the harness could not set the case up (e.g. a start-up too slow)
+                        print(f"  {controller:9s} {case:18s} not run: {exc}", flush=True)
+                        continue
                     results.append(r)
                     if args.json is not None:  # every run as it ends (a long campaign may be cut short)
                         with args.json.with_suffix(".jsonl").open("a") as out:
