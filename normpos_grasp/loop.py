@@ -323,8 +323,8 @@ def run_cell_loop(
         records.append(record)
         if on_pick is not None:
             on_pick(record)
-        if bundles is not None:
-            bundles.save(record, cell, templates, options or PipelineOptions())
+        if bundles is not None:  # the cell as this turn planned in (pattern slots used so far, parts left there)
+            bundles.save(record, cycle_cell, templates, options or PipelineOptions())
 
     for index in range(max_picks):
         if source.exhausted:
@@ -335,6 +335,7 @@ def run_cell_loop(
         t0 = time.perf_counter()
         frame = source.capture()
         cycle_q = np.array(start_q, dtype=np.float64)
+        cycle_cell = cell_now
         t_capture = (time.perf_counter() - t0) * 1e3
         if watch is not None:
             watch.check_drift(frame)  # CameraMoved ends the loop before anything is planned from a moved camera

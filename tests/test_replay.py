@@ -233,3 +233,32 @@ def test_options_round_trip_exactly_and_strictly() -> None:
         options_from_json(PipelineOptions, {**data, "warp": 9})
     with pytest.raises(BundleError, match="whole number"):
         options_from_json(PipelineOptions, {**data, "fit_workers": "two"})
+
+
+def test_a_place_pattern_cell_replays_with_the_slots_used_so_far(tmp_path: Path) -> None:
+    """Place patterns change the cell during a run (slots used, parts left as boxes): the bundle of the second turn
+    records that state, and its replay plans into the next slot as the loop did."""
+    from normpos_grasp.cell.config import load_cell
+    from normpos_grasp.io.yaml_safe import load_yaml
+
+    packaged = Path(str(resolve_cell("ur5e_bin_parallel").source))
+    data = load_yaml(packaged.read_text(encoding="utf-8"))
+    data.pop("templates", None)
+    pattern = {"columns": 2, "rows": 1, "pitch_m": [0.12, 0.0], "layers": 1, "layer_height_m": 0.06}
+    tray = {"xyz": [0.0, -0.45, 0.0], "rpy_deg": [180, 0, 0]}
+    data["place"] = [{"name": "tray", "world_from_tcp": tray, "pattern": pattern, "approach_m": 0.12}]
+    path = tmp_path / "pattern_cell.yaml"
+    path.write_text(json.dumps(data), encoding="utf-8")  # JSON is YAML
+    cell = load_cell(path)
+    library = [t for t in default_part_library() if t.name in ("box", "bar", "cube")]
+    source = SyntheticBinSource(cell, 3, seed=1, library=library, validate_physics=False)
+    segmenter = source.ground_truth_segmenter()
+    with BundleRecorder(tmp_path / "bundles", segmenter) as recorder:
+        records = run_cell_loop(cell, source, segmenter, library, None, max_picks=2, options=OPTIONS,
+                                bundles=recorder)  # fmt: skip
+    assert [r.status for r in records] == ["dry_run", "dry_run"]
+    second = load_bundle(recorder.saved[1])
+    assert [p.name for p in second.cell.places] == ["tray[1,0,0]"]
+    assert second.cell.static_boxes[-1].name == "placed/tray[0,0,0]"
+    report = assert_replays(second)
+    assert report.plan_json is not None and report.plan_json["grasp"]["place"] == "tray[1,0,0]"

@@ -50,7 +50,7 @@ import numpy as np
 
 from normpos_grasp.atomic import atomic_write_bytes
 from normpos_grasp.camera.model import Camera, RGBDFrame
-from normpos_grasp.cell.config import CellConfig, cell_from_dict
+from normpos_grasp.cell.config import BoxSpec, CellConfig, cell_from_dict
 from normpos_grasp.errors import InputError
 from normpos_grasp.io.yaml_safe import load_yaml
 from normpos_grasp.pipeline import FrameResult, PipelineOptions
@@ -281,6 +281,18 @@ def _write_contents(
         "start_q": [float(v) for v in start_q],
         "frame": {"stamp": float(frame.stamp), "scene_id": int(frame.scene_id), "im_id": int(frame.im_id)},
         "cell": {**cell.record(), "name": cell.name},
+        # what the loop changed in the cell by this turn (place patterns): the places left, every static box
+        "cell_state": {
+            "places": [p.name for p in cell.places],
+            "static_boxes": [
+                {
+                    "name": b.name,
+                    "world_from_box": np.asarray(b.world_from_box).tolist(),
+                    "size": list(map(float, b.size)),
+                }
+                for b in cell.static_boxes
+            ],
+        },
         "segmenter": segmenter,
         "library": library,
         "depth_check": None if result.depth_check is None else {"corrected_m": float(result.depth_check.corrected)},
@@ -590,6 +602,7 @@ def load_bundle(path: str | Path) -> Bundle:
             cell_from_dict(load_yaml(text, str(root / "cell.yaml")), base_dir=original.parent, source=original),
             source_sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(),
         )
+        cell = _with_state(cell, cycle.get("cell_state"), root)
         missing: list[str] = []
         options = options_from_json(PipelineOptions, _read_json(root / "options.json"), "options", missing)
         camera = Camera.from_dict(_read_json(root / "camera.json"))
@@ -622,6 +635,23 @@ def load_bundle(path: str | Path) -> Bundle:
         raise
     except (KeyError, TypeError, ValueError, OSError, InputError) as exc:
         raise BundleError(f"bundle {root} is malformed: {type(exc).__name__}: {exc}") from exc
+
+
+def _with_state(cell: CellConfig, state: Any, root: Path) -> CellConfig:
+    """The cell file's cell as the turn had it: the recorded places left and static boxes (place patterns fill
+    slots and leave parts as boxes during a run)."""
+    if state is None:
+        return cell
+    by_name = {p.name: p for p in cell.places}
+    names = [str(n) for n in state["places"]]
+    unknown = [n for n in names if n not in by_name]
+    if unknown:
+        raise BundleError(f"bundle {root}: places {unknown} are not in its cell.yaml")
+    boxes = tuple(
+        BoxSpec(str(b["name"]), np.asarray(b["world_from_box"], dtype=np.float64), np.asarray(b["size"], dtype=float))
+        for b in state["static_boxes"]
+    )
+    return replace(cell, places=tuple(by_name[n] for n in names), static_boxes=boxes)
 
 
 # ----------------------------------------------------------------------------------------------- helpers
