@@ -186,3 +186,11 @@ def test_refine_turn_finds_the_nut_flats_on_the_outline() -> None:
     assert min(ang, 60.0 - ang) < 2.0  # back on the flats (modulo the 60-degree symmetry)
     same, none = refine_turn(nut, prep, truth, cam.K, depth, 0.003)
     assert none == 0.0 or abs(np.degrees(none)) < 2.0
+
+
+@pytest.mark.parametrize("command", [["measure", "scene", "--out", "o"], ["estimate", "split", "--out", "r.csv"]])
+def test_every_segmenting_command_accepts_cad(command: list[str]) -> None:
+    from normpos_grasp.cli.main import build_parser
+
+    args = build_parser().parse_args([*command, "--segmenter", "cad"])
+    assert args.segmenter == "cad"
