@@ -4,8 +4,9 @@ Kinds: 'model' (the bundled ONNX model, or the one at `model_path`), 'depth' (mo
 template fit), 'cad' (the library's CAD templates found in the whole region of interest, no masks:
 `perception.cad_detector.CadDetector`; `pipeline.perceive` hands it the library and takes its poses as the fits),
 'gt' (the data's own true masks: needs `ground_truth`, a BOP scene or a synthetic source), and 'auto' (the model when
-it loads and knows every label of the library, else the cad detector, with a warning; the depth segmenter when no
-library is given).
+it loads and knows every label of the library, else the depth segmenter, with a warning). 'auto' does not fall back
+to 'cad': on held-out piles (benchmarks/bench_cad.py) the cad detector still accepts wrong poses (precision 0.56)
+and takes seconds per frame, so it is chosen only by name until its figures reach its targets (docs/cad_detection.md).
 """
 
 from __future__ import annotations
@@ -58,7 +59,6 @@ def choose_segmenter(
     if kind == "model":
         return SegmenterChoice(_load_model(model_path), "model")
     if kind == "auto":
-        fallback = "cad" if library is not None else "depth"
         try:
             model = _load_model(model_path)
         except (SegmentationError, MissingDependency) as exc:
@@ -66,8 +66,8 @@ def choose_segmenter(
             return choose_segmenter("depth")
         missing = sorted(set(labels) - set(getattr(model, "class_names", ())))
         if missing:
-            logger.warning("the model does not know the labels %s: using the %s segmenter", missing, fallback)
-            return choose_segmenter(fallback, library=library)
+            logger.warning("the model does not know the labels %s: using the depth segmenter", missing)
+            return choose_segmenter("depth")
         return SegmenterChoice(model, "model")
     raise InputError(f"unknown segmenter {kind!r}; choose one of {', '.join(SEGMENTER_KINDS)}")
 
