@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
-from contextlib import nullcontext
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from threading import Event
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -115,13 +117,14 @@ class SyntheticBinSource:
 
     def capture(self) -> RGBDFrame:
         from normpos_grasp.sim.dataset import render_frame
-        from normpos_grasp.sim.render import make_renderer
+        from normpos_grasp.sim.render import make_renderer, release_gl_context
 
         renderer = make_renderer(self.layout, self.camera.width, self.camera.height)
         try:
             self.last = render_frame(self.layout, renderer, self.camera, self.sensor, self.rng, im_id=self._frame_index)
         finally:
             renderer.close()
+            release_gl_context()  # the next capture may come from another thread (run_cell_loop(overlap=True))
         self._frame_index += 1
         return self.last.frame
 
@@ -289,6 +292,7 @@ def run_cell_loop(
     gripper: ToolDriver | None = None,
     before_execute: Callable[[PickPlan], None] | None = None,
     watch: CellWatch | None = None,
+    overlap: bool = False,
 ) -> list[PickRecord]:
     """Run picks until the source is exhausted, nothing is feasible, the driver faults, or `max_picks` turns.
 
@@ -309,14 +313,24 @@ def run_cell_loop(
     each execution: an intrusion stops the arm and gives a 'zone_stop' record; the loop then follows the resume
     rules (acknowledgement where the cell asks, zones clear, driver resumed) and re-captures, re-measures and
     re-plans from where the arm stopped, never resuming the old plan.
+
+    `overlap`: once the arm has passed the plan's retreat (the part lifted clear of the bin), a worker thread checks
+    the pick, captures the next frame and perceives and plans it from the plan's last waypoint while the place
+    runs (docs/loop.md, "Overlapped cycles"). The next turn uses that plan only when the pick counted, the cell is
+    the one it was planned in and the arm ended where it started; otherwise it re-captures and re-plans. An
+    exception in the worker stops the arm (the driver's stop request, or stop() at rest) and leaves the loop with
+    that exception; nothing is sent from its plan. Not combined with `watch` yet.
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
     if execute and driver is None:
         raise InputError("execute=True needs a connected driver")
+    if overlap and watch is not None:
+        raise InputError("overlap is not combined with a zone watch yet: run one or the other")
     start_q = driver.state().q if (driver is not None and execute) else np.asarray(cell.home_q, dtype=np.float64)
     records: list[PickRecord] = []
     cell_now = cell  # the cell as filled so far: used pattern slots gone, the parts left there static boxes
+    ahead: _Lookahead | None = None  # the next turn, perceived and planned while the arm placed (overlap)
 
     def emit(record: PickRecord) -> None:
         record = replace(record, captured=frame, start_q=cycle_q)  # this turn's frame and start joints
@@ -326,74 +340,227 @@ def run_cell_loop(
         if bundles is not None:  # the cell as this turn planned in (pattern slots used so far, parts left there)
             bundles.save(record, cycle_cell, templates, options or PipelineOptions())
 
-    for index in range(max_picks):
-        if source.exhausted:
-            break
-        if not cell_now.places:
-            log.warning("every place slot of cell %r is filled: loop stopped", cell.name)
-            break
-        t0 = time.perf_counter()
-        frame = source.capture()
-        cycle_q = np.array(start_q, dtype=np.float64)
-        cycle_cell = cell_now
-        t_capture = (time.perf_counter() - t0) * 1e3
-        if watch is not None:
-            watch.check_drift(frame)  # CameraMoved ends the loop before anything is planned from a moved camera
-        result = process_frame(frame, segmenter, templates, cell_now, options, start_q)
-        timings = {"capture": t_capture, **result.timings_ms}
-        if on_plan is not None:
-            on_plan(result)
-        plan = result.plan
-        if plan is None or plan.status != "ok":
-            doc = plan.to_json() if plan is not None else None
-            emit(PickRecord(index, result, "no_feasible_grasp", "not_checked", doc, None, timings))
-            break
-        plan_json = plan.to_json()
-        t0 = time.perf_counter()
-        try:
-            if execute and before_execute is not None:
-                before_execute(plan)
-            with (
-                watch.watching(frame, driver, cycle_q, watch.held_radius(plan))
-                if (watch is not None and execute)
-                else nullcontext()
-            ):
-                report = execute_plan(driver, plan_json, limits, dry_run=not execute, gripper=gripper)
-        except ZoneIntrusion as exc:
-            timings["execute"] = (time.perf_counter() - t0) * 1e3
-            log.error("pick %d: zone stop: %s", index + 1, exc)
-            fault = f"ZoneIntrusion: {exc}"
-            emit(PickRecord(index, result, "zone_stop", "not_checked", plan_json, None, timings, fault))
-            if watch is None or driver is None or not watch.after_stop(driver, exc):
+    # overlap: every capture and the worker run on one thread (a renderer's GL context stays on its thread)
+    pool_cm: AbstractContextManager[ThreadPoolExecutor | None] = (
+        ThreadPoolExecutor(1, thread_name_prefix="normpos-overlap") if overlap else nullcontext()
+    )
+    with pool_cm as pool:
+        for index in range(max_picks):
+            if source.exhausted:
                 break
-            start_q = driver.state().q  # re-capture, re-measure and re-plan from here; the old plan is dropped
-            continue
-        except (DriverFault, SafetyViolation) as exc:
+            if not cell_now.places:
+                log.warning("every place slot of cell %r is filled: loop stopped", cell.name)
+                break
+            cycle_cell = cell_now
+            if ahead is not None and ahead.usable(start_q, cell_now):
+                assert ahead.frame is not None and ahead.result is not None
+                frame, result, cycle_q = ahead.frame, ahead.result, ahead.start_q  # the plan starts where the arm is
+                timings = {"capture": ahead.capture_ms, **result.timings_ms, "overlap_wait": ahead.wait_ms}
+            else:
+                t0 = time.perf_counter()
+                frame = pool.submit(source.capture).result() if pool is not None else source.capture()
+                cycle_q = np.array(start_q, dtype=np.float64)
+                t_capture = (time.perf_counter() - t0) * 1e3
+                if watch is not None:
+                    watch.check_drift(frame)  # CameraMoved ends the loop before anything is planned from a moved camera
+                result = process_frame(frame, segmenter, templates, cell_now, options, start_q)
+                timings = {"capture": t_capture, **result.timings_ms}
+            ahead = None
+            if on_plan is not None:
+                on_plan(result)
+            plan = result.plan
+            if plan is None or plan.status != "ok":
+                doc = plan.to_json() if plan is not None else None
+                emit(PickRecord(index, result, "no_feasible_grasp", "not_checked", doc, None, timings))
+                break
+            plan_json = plan.to_json()
+            cell_next = with_placed(cell_now, plan)  # the cell once this part is down (the next turn plans in it)
+            look: _Lookahead | None = None
+            if overlap:
+                plan_next = index + 1 < max_picks and bool(cell_next.places)
+                assert pool is not None
+                look = _Lookahead(
+                    pool, source, segmenter, templates, options, plan, cell_next, driver if execute else None, plan_next
+                )
+            t0 = time.perf_counter()
+            try:
+                if execute and before_execute is not None:
+                    before_execute(plan)
+                with (
+                    (
+                        watch.watching(frame, driver, cycle_q, watch.held_radius(plan))
+                        if (watch is not None and execute)
+                        else nullcontext()
+                    ),
+                    look.running() if look is not None else nullcontext(),
+                ):
+                    report = execute_plan(driver, plan_json, limits, dry_run=not execute, gripper=gripper)
+            except ZoneIntrusion as exc:
+                timings["execute"] = (time.perf_counter() - t0) * 1e3
+                log.error("pick %d: zone stop: %s", index + 1, exc)
+                fault = f"ZoneIntrusion: {exc}"
+                emit(PickRecord(index, result, "zone_stop", "not_checked", plan_json, None, timings, fault))
+                if watch is None or driver is None or not watch.after_stop(driver, exc):
+                    break
+                start_q = driver.state().q  # re-capture, re-measure and re-plan from here; the old plan is dropped
+                continue
+            except (DriverFault, SafetyViolation) as exc:
+                timings["execute"] = (time.perf_counter() - t0) * 1e3
+                status = "driver_fault" if isinstance(exc, DriverFault) else "unsafe_plan"
+                log.error("pick %d: %s: %s", index + 1, type(exc).__name__, exc)
+                fault = f"{type(exc).__name__}: {exc}"
+                emit(PickRecord(index, result, status, "not_checked", plan_json, None, timings, fault))
+                break
             timings["execute"] = (time.perf_counter() - t0) * 1e3
-            status = "driver_fault" if isinstance(exc, DriverFault) else "unsafe_plan"
-            log.error("pick %d: %s: %s", index + 1, type(exc).__name__, exc)
-            fault = f"{type(exc).__name__}: {exc}"
-            emit(PickRecord(index, result, status, "not_checked", plan_json, None, timings, fault))
-            break
-        timings["execute"] = (time.perf_counter() - t0) * 1e3
-        if report.status == "grip_failed":
-            # the grip-detect input stayed low: the pick stopped at the grasp with the arm at rest; the operator acts
-            log.error("pick %d: grip not detected after closing; loop stopped", index + 1)
-            fault = "grip not detected after closing: pick stopped at the grasp"
-            emit(PickRecord(index, result, "pick_failed", "grip_not_detected", plan_json, report, timings, fault))
-            break
-        t0 = time.perf_counter()
-        check = source.check_pick(plan)  # synthetic bins replay the pick in physics, dry run or not
-        timings["check"] = (time.perf_counter() - t0) * 1e3
-        status = "dry_run" if not execute else ("picked" if check in ("held", "not_checked") else "pick_failed")
-        if status in ("picked", "dry_run"):
-            cell_now = with_placed(cell_now, plan)
-        if execute and driver is not None:
-            start_q = driver.state().q
-        elif plan.waypoints:
-            start_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
-        emit(PickRecord(index, result, status, check, plan_json, report, timings))
+            if report.status == "grip_failed":
+                if look is not None:
+                    look.cancel()  # the arm rests at the grasp: the worker never got past the retreat
+                # the grip-detect input stayed low: the pick stopped at the grasp, the arm at rest; the operator acts
+                log.error("pick %d: grip not detected after closing; loop stopped", index + 1)
+                fault = "grip not detected after closing: pick stopped at the grasp"
+                emit(PickRecord(index, result, "pick_failed", "grip_not_detected", plan_json, report, timings, fault))
+                break
+            if look is not None:
+                look.finish(driver if execute else None)  # raises the worker's exception with the arm stopped
+                assert look.check is not None
+                check = look.check
+                timings["check"] = look.check_ms
+                ahead = look
+            else:
+                t0 = time.perf_counter()
+                check = source.check_pick(plan)  # synthetic bins replay the pick in physics, dry run or not
+                timings["check"] = (time.perf_counter() - t0) * 1e3
+            status = "dry_run" if not execute else ("picked" if check in ("held", "not_checked") else "pick_failed")
+            if status in ("picked", "dry_run"):
+                cell_now = cell_next
+            if execute and driver is not None:
+                start_q = driver.state().q
+            elif plan.waypoints:
+                start_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
+            emit(PickRecord(index, result, status, check, plan_json, report, timings))
     return records
+
+
+class _Lookahead:
+    """The next turn of an overlapped loop, prepared on the loop's capture thread while the arm carries out `plan`.
+
+    The worker waits until the arm has passed the plan's retreat (the trajectory sample nearest the arm's joints,
+    searched from the grasp on; without a driver, at once), then checks the pick (`source.check_pick`) and, when it
+    counted and `plan_next`, captures the next frame and runs perception and planning in `cell` (the cell with this
+    part placed) from the plan's last waypoint. The main thread's `running()` wraps the execution: a worker failure
+    during the motion asks the driver to stop the arm; the motion call then raises and the worker's exception
+    leaves the loop.
+    """
+
+    def __init__(
+        self,
+        pool: ThreadPoolExecutor,
+        source: FrameSource,
+        segmenter: Segmenter,
+        templates: list[Template],
+        options: PipelineOptions | None,
+        plan: PickPlan,
+        cell: CellConfig,
+        driver: ArmDriver | None,
+        plan_next: bool,
+        poll_s: float = 0.004,
+    ) -> None:
+        self.source, self.segmenter, self.templates, self.options = source, segmenter, templates, options
+        self.plan, self.cell, self.driver, self.plan_next, self.poll_s = plan, cell, driver, plan_next, poll_s
+        self.start_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64) if plan.waypoints else np.zeros(6)
+        self.check: str | None = None
+        self.frame: RGBDFrame | None = None
+        self.result: FrameResult | None = None
+        self.error: BaseException | None = None
+        self.capture_ms = self.check_ms = self.wait_ms = 0.0
+        self._go = Event()  # the execution returned: go on even if the retreat was never seen
+        self._cancel = Event()
+        self._pool = pool
+        self._future: Future[None] | None = None
+
+    def _retreat_passed(self) -> bool:
+        traj = self.plan.trajectory
+        names = [w.name for w in self.plan.waypoints]
+        if self.driver is None:
+            return True
+        if traj is None or "retreat" not in names or "grasp" not in names:
+            return False  # no timed path to follow: wait for the end of the execution
+        q = self.driver.state().q
+        wq = [w.q for w in self.plan.waypoints]
+        grasp = int(np.argmin(np.abs(traj.q - wq[names.index("grasp")]).max(axis=1)))
+        retreat = grasp + int(np.argmin(np.abs(traj.q[grasp:] - wq[names.index("retreat")]).max(axis=1)))
+        here = grasp + int(np.argmin(np.abs(traj.q[grasp:] - q).max(axis=1)))
+        return here >= retreat
+
+    def _run(self) -> None:
+        try:
+            while not self._cancel.is_set() and not self._go.is_set() and not self._retreat_passed():
+                time.sleep(self.poll_s)
+            if self._cancel.is_set():
+                return
+            t0 = time.perf_counter()
+            self.check = self.source.check_pick(self.plan)
+            self.check_ms = (time.perf_counter() - t0) * 1e3
+            if self.check not in ("held", "not_checked") or not self.plan_next or self.source.exhausted:
+                return  # the bin changed in a way a frame taken now would not be planned on; the next turn re-plans
+            t0 = time.perf_counter()
+            frame = self.source.capture()
+            self.capture_ms = (time.perf_counter() - t0) * 1e3
+            if self._cancel.is_set():
+                return
+            result = process_frame(frame, self.segmenter, self.templates, self.cell, self.options, self.start_q)
+            self.frame, self.result = frame, result
+        except BaseException as exc:  # handed to the main thread, which stops the arm and re-raises
+            self.error = exc
+            request = getattr(self.driver, "request_stop", None)
+            if callable(request):
+                request(f"overlap worker failed: {type(exc).__name__}: {exc}")
+
+    def start(self) -> _Lookahead:
+        self._future = self._pool.submit(self._run)
+        return self
+
+    def _join(self) -> None:
+        if self._future is not None:
+            self._future.result()  # _run keeps its exception in self.error
+
+    @contextmanager
+    def running(self) -> Iterator[_Lookahead]:
+        """Around the execution: starts the worker; a motion call that raised cancels it, and when the worker had
+        asked for that stop, its exception is the one that leaves."""
+        self.start()
+        try:
+            yield self
+        except BaseException as exc:
+            self.cancel()
+            if self.error is not None:
+                raise self.error from exc
+            raise
+
+    def cancel(self) -> None:
+        self._cancel.set()
+        self._join()
+
+    def finish(self, driver: ArmDriver | None) -> None:
+        """Wait for the worker (the execution has returned); its exception is raised after `driver.stop()`."""
+        t0 = time.perf_counter()
+        self._go.set()
+        self._join()
+        self.wait_ms = (time.perf_counter() - t0) * 1e3
+        if self.error is not None:
+            if driver is not None:
+                driver.stop()
+            raise self.error
+
+    def usable(self, start_q: FloatArray, cell: CellConfig, tol_rad: float = 1e-3) -> bool:
+        """The prepared plan holds: a result exists, the cell is the one it planned in, the arm is at its start."""
+        if self.result is None or self.frame is None or cell is not self.cell:
+            return False
+        err = float(np.max(np.abs(np.asarray(start_q, dtype=np.float64) - self.start_q)))
+        if err > tol_rad:
+            log.warning("overlap: the arm is %.2e rad from the prepared plan's start: re-planned", err)
+            return False
+        return True
 
 
 def with_placed(cell: CellConfig, plan: PickPlan) -> CellConfig:

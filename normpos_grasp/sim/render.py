@@ -201,6 +201,25 @@ def opengl_available() -> bool:
     return True
 
 
+def release_gl_context() -> None:
+    """Leave the process-wide OpenGL context current on no thread, so that another thread may render next (the
+    overlapped cell loop renders on its capture thread; EGL refuses a context current on another thread). EGL and
+    GLFW backends; a no-op for the others and when no context was made."""
+    ctx = _GL_CONTEXT
+    if ctx is None:
+        return
+    module = type(ctx).__module__
+    if module.startswith("mujoco.egl"):
+        from mujoco import egl
+
+        gl = egl.EGL
+        gl.eglMakeCurrent(egl.EGL_DISPLAY, gl.EGL_NO_SURFACE, gl.EGL_NO_SURFACE, gl.EGL_NO_CONTEXT)
+    elif module.startswith("mujoco.glfw"):
+        import glfw  # type: ignore[import-not-found, unused-ignore]
+
+        glfw.make_context_current(None)  # type: ignore[arg-type, unused-ignore]
+
+
 class MujocoSceneRenderer:
     """Renders one layout from many cameras with MuJoCo (model and GPU buffers built once).
 
