@@ -85,6 +85,11 @@ def register(subparsers: Any) -> None:
         help="save a replay bundle of every turn under DIR (`normpos-grasp replay BUNDLE`; docs/replay.md)",
     )
     p.add_argument("--linger", type=float, default=0.0, help="with --view: keep serving this many seconds at the end")
+    p.add_argument(
+        "--overlap",
+        action="store_true",
+        help="perceive and plan the next frame while the arm places (once it passed the retreat); docs/loop.md",
+    )
     p.set_defaults(handler=run)
 
 
@@ -326,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
                     before_execute=before_execute,
                     bundles=bundles,
                     watch=cell_watch,
+                    overlap=bool(args.overlap),
                 )
                 if view is not None and args.linger > 0:
                     time.sleep(args.linger)
