@@ -215,9 +215,9 @@ def release_gl_context() -> None:
         gl = egl.EGL
         gl.eglMakeCurrent(egl.EGL_DISPLAY, gl.EGL_NO_SURFACE, gl.EGL_NO_SURFACE, gl.EGL_NO_CONTEXT)
     elif module.startswith("mujoco.glfw"):
-        import glfw  # type: ignore[import-not-found, unused-ignore]
+        from mujoco import glfw as mujoco_glfw  # mujoco's own GLFW backend (it brings the glfw binding)
 
-        glfw.make_context_current(None)  # type: ignore[arg-type, unused-ignore]
+        mujoco_glfw.glfw.make_context_current(None)  # type: ignore[attr-defined, unused-ignore]
 
 
 class MujocoSceneRenderer:
