@@ -290,8 +290,9 @@ class RobotiqServer:
                 sock.shutdown(socket.SHUT_RDWR)
             with contextlib.suppress(OSError):
                 sock.close()
+        deadline = time.monotonic() + 2.0  # s for all threads together (daemons: a stuck one dies with the process)
         for th in self._threads:
-            th.join(timeout=2.0)
+            th.join(timeout=max(0.0, deadline - time.monotonic()))
 
     def __enter__(self) -> RobotiqServer:
         return self.start()

@@ -183,8 +183,9 @@ class UREmulator:
             with contextlib.suppress(OSError):
                 sock.close()
         self.drop_connections(include_all=True)
+        deadline = time.monotonic() + 2.0  # s for all threads together (daemons: a stuck one dies with the process)
         for th in self._threads:
-            th.join(timeout=2.0)
+            th.join(timeout=max(0.0, deadline - time.monotonic()))
 
     def __enter__(self) -> UREmulator:
         return self.start()
