@@ -82,7 +82,7 @@ def check_out_file(path: Path, overwrite: bool) -> Path:
 SEGMENTER_HELP = (
     "instance source: model (the bundled ONNX model, or --seg-model), depth (model-free; the template fit names the "
     "part), cad (the library's CAD templates found in the whole bin or table top, no masks), gt (the data's true "
-    "masks: measures everything after segmentation), auto (model when its classes cover the library, else cad)"
+    "masks: measures everything after segmentation), auto (model when its classes cover the library, else depth)"
 )
 
 
