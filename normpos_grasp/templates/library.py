@@ -386,7 +386,7 @@ def _parse_symmetry(spec: dict[str, Any], scale: float, where: str) -> Symmetry:
         for i, d in enumerate(spec.get("generators") or [])
     ]
     if gens:
-        disc.extend(_group_closure(gens, where))
+        disc.extend(group_closure(gens, where))
     for i, d in enumerate(spec.get("discrete") or []):
         disc.append(_parse_rotation(d, scale, f"{where}: symmetry.discrete[{i}]"))
     return Symmetry(continuous=tuple(cont), discrete=tuple(_unique_transforms(disc)))
@@ -425,7 +425,7 @@ def _unique_transforms(ts: list[FloatArray]) -> list[FloatArray]:
     return out
 
 
-def _group_closure(gens: list[FloatArray], where: str, limit: int = 120) -> list[FloatArray]:
+def group_closure(gens: list[FloatArray], where: str, limit: int = 120) -> list[FloatArray]:
     """All products of the generators (a finite symmetry group), identity excluded."""
     group = [np.eye(4)]
     frontier = [np.eye(4)]

@@ -22,6 +22,7 @@ import numpy as np
 from normpos_grasp.errors import TemplateError
 from normpos_grasp.geometry.transforms import make_pose, rotation_from_rotvec
 from normpos_grasp.records.template import Symmetry
+from normpos_grasp.templates.library import group_closure
 from normpos_grasp.typing import FloatArray
 
 if TYPE_CHECKING:
@@ -206,25 +207,8 @@ def _as_symmetry(found: list[tuple[FloatArray, int]]) -> Symmetry:
         disc = (make_pose(2.0 * np.outer(flips[0], flips[0]) - np.eye(3)),) if flips else ()
         return Symmetry(continuous=((c, np.zeros(3)),), discrete=disc)
     gens = [make_pose(_rotation(a, 2 * np.pi / n)) for a, n in found]
-    return Symmetry(discrete=tuple(_closure(gens)))
-
-
-def _closure(gens: list[FloatArray], limit: int = 120) -> list[FloatArray]:
-    """Every product of `gens` (a finite rotation group), identity excluded."""
-    group = [np.eye(4)]
-    frontier = [np.eye(4)]
-    while frontier:
-        nxt = []
-        for a in frontier:
-            for g in gens:
-                p = g @ a
-                if not any(np.allclose(p, q, atol=1e-6) for q in group):
-                    group.append(p)
-                    nxt.append(p)
-                    if len(group) > limit:
-                        raise TemplateError(f"the detected symmetries do not close into a group of <= {limit}")
-        frontier = nxt
-    return [np.round(t, 12) for t in group[1:]]
+    group = group_closure(gens, "the detected symmetries")
+    return Symmetry(discrete=tuple(np.round(g, 12) for g in group))
 
 
 def _axis_name(a: FloatArray) -> str:
