@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.camera.hand_eye_io import read_flange_from_camera
 from normpos_grasp.camera.model import ROTATION_TOL, check_rotation, check_world_from_camera
 from normpos_grasp.errors import CellConfigError, ExtrinsicsError, InputError, NormposError
 from normpos_grasp.io.yaml_safe import load_yaml_file
@@ -27,6 +28,7 @@ from normpos_grasp.typing import FloatArray
 
 from .gripper_driver import GripperDriverSpec, parse_gripper_driver
 from .places import pattern_slots
+from .wrist_camera import D435_BODY_M, WristCamera
 
 # Ceilings of the motion caps. Joint speeds: each joint's rated speed (ur_params, from UR's ROS description).
 # UR rates no joint or tool acceleration (the ROS description says has_acceleration_limits: false), so the
@@ -58,7 +60,10 @@ _TOP_KEYS = (
     "watch",
 )
 _ROBOT_KEYS = ("model", "serial_number", "world_from_base", "home")
-_CAMERA_KEYS = ("world_from_camera", "from_scene")
+_CAMERA_KEYS = ("mount", "world_from_camera", "from_scene")
+_WRIST_CAMERA_KEYS = ("mount", "flange_from_camera", "capture", "body_size_m", "camera_from_body", "cable_clearance_m")
+CAMERA_MOUNTS = ("fixed", "wrist")
+MAX_CAPTURE_POSES = 16
 _POSE_KEYS = ("xyz", "rpy_deg", "rpy")
 _BOX_KEYS = ("pose", "size")
 _FIXTURE_KEYS = ("name", "pose", "size")
@@ -244,6 +249,7 @@ class CellConfig:
     gripper_driver: GripperDriverSpec | None = None  # `gripper.driver` (None: not configured)
     source_sha256: str = ""  # of the file it was read from ('' for a cell built from a mapping)
     watch: WatchSpec | None = None  # the `watch:` section (None: no zone watch, no drift check)
+    wrist_camera: WristCamera | None = None  # `camera: {mount: wrist, ...}` (world_from_camera is then None)
 
     def record(self) -> dict[str, str]:
         """What a plan records of the cell it was made in: name, file path and the file's SHA-256."""
@@ -274,7 +280,8 @@ class CellConfig:
         return pose
 
 
-BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction")  # packaged in normpos_grasp/examples/cells
+# packaged in normpos_grasp/examples/cells
+BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction", "ur5e_wrist_camera")
 
 
 def resolve_cell(name_or_path: str | Path) -> CellConfig:
@@ -665,6 +672,65 @@ def _watch(v: Any, base_dir: str | Path) -> WatchSpec:
     )
 
 
+def _wrist_camera(
+    v: Any,
+    base_dir: str | Path,
+    model: str,
+    world_from_base: FloatArray,
+    flange_from_tcp: FloatArray,
+    motion: MotionLimits,
+    floor: float | None,
+) -> WristCamera:
+    """`camera: {mount: wrist, flange_from_camera, capture, body_size_m, camera_from_body, cable_clearance_m}`.
+
+    flange_from_camera: the camera JSON `calibrate hand-eye --mode eye-in-hand` wrote (a path, relative to the cell
+    file) or a pose. capture: a list of joint positions (rad), each within the joint limits, with its TCP inside
+    motion.workspace and its camera above the lowest surface parts rest on (`floor`, m)."""
+    d = _mapping(v, "camera", _WRIST_CAMERA_KEYS)
+    raw = _req(d, "flange_from_camera", "camera")
+    source = None
+    if isinstance(raw, str):
+        source = (Path(base_dir) / _text(raw, "camera.flange_from_camera", 4096)).resolve()
+        try:
+            flange_from_camera = read_flange_from_camera(source)
+        except InputError as exc:
+            raise _err("camera.flange_from_camera", str(exc)) from exc
+    else:
+        flange_from_camera = parse_pose(raw, "camera.flange_from_camera")
+    reach = float(np.linalg.norm(flange_from_camera[:3, 3]))
+    if reach > 0.5:
+        raise _err("camera.flange_from_camera", f"puts the camera {reach:.3g} m from the flange (more than 0.5 m)")
+    captures = _req(d, "capture", "camera")
+    if not isinstance(captures, list) or not captures or len(captures) > MAX_CAPTURE_POSES:
+        raise _err("camera.capture", f"expected a list of 1 to {MAX_CAPTURE_POSES} joint positions (6 numbers, rad)")
+    size = _lengths(d.get("body_size_m", list(D435_BODY_M)), "camera.body_size_m", 3, positive=True)
+    if np.any(size > 0.5):
+        raise _err("camera.body_size_m", f"{size.tolist()} m: a camera housing is at most 0.5 m on a side")
+    default_body = {"xyz": [0.0, 0.0, -float(size[2]) / 2.0]}  # the housing behind its optical centre
+    wrist = WristCamera(
+        flange_from_camera=flange_from_camera,
+        capture_q=np.stack([_vec(q, f"camera.capture[{i}]", 6, unit="rad") for i, q in enumerate(captures)]),
+        body_size_m=size,
+        camera_from_body=parse_pose(d.get("camera_from_body", default_body), "camera.camera_from_body"),
+        cable_clearance_m=_length(d.get("cable_clearance_m", 0.02), "camera.cable_clearance_m", 0.0, 0.2),
+        source=source,
+    )
+    lim = np.minimum(np.asarray(UR_PARAMS[model].position_limit), 2 * np.pi)
+    for i, q in enumerate(wrist.capture_q):
+        where = f"camera.capture[{i}]"
+        if np.any(np.abs(q) > lim):
+            raise _err(where, f"{q.tolist()} is outside the joint limits +-{lim.tolist()} rad")
+        world_from_camera = wrist.world_from_camera(world_from_base, model, q)
+        tcp = (world_from_camera @ np.linalg.inv(flange_from_camera) @ flange_from_tcp)[:3, 3]
+        if np.any(tcp < motion.workspace_min) or np.any(tcp > motion.workspace_max):
+            raise _err(where, f"the TCP at {np.round(tcp, 3).tolist()} m is outside motion.workspace")
+        try:
+            check_world_from_camera(world_from_camera, where, floor_z_m=floor)
+        except InputError as exc:
+            raise CellConfigError(str(exc)) from exc
+    return wrist
+
+
 def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = None) -> CellConfig:
     """Validate a parsed cell mapping; see docs/cells.md for the schema. Every key at every level is checked
     (unknown keys are errors naming their full path), every number for type, finiteness and range."""
@@ -716,7 +782,17 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
 
     limits = _motion(data.get("motion", {}), model)
     world_from_camera = None
-    if "camera" in data:
+    wrist = None
+    mount = data["camera"].get("mount", "fixed") if isinstance(data.get("camera"), dict) else "fixed"
+    if mount not in CAMERA_MOUNTS:
+        raise _err("camera.mount", f"expected one of {', '.join(CAMERA_MOUNTS)}, got {_short(mount)}")
+    if mount == "wrist":
+        floor = _camera_floor(floor_z, boxes, bin_spec)
+        wrist = _wrist_camera(data["camera"], base_dir, model, world_from_base, tool.flange_from_tcp, limits, floor)
+        tool = wrist.mounted_on(tool)
+        if "watch" in data:
+            raise _err("watch", "the zone watch and drift check need a fixed camera; this cell's is on the wrist")
+    elif "camera" in data:
         camera = _mapping(data["camera"], "camera", _CAMERA_KEYS)
         from_scene = camera.get("from_scene", False)
         if not isinstance(from_scene, bool):
@@ -789,4 +865,5 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
             else None
         ),
         watch=_watch(data["watch"], base_dir) if "watch" in data else None,
+        wrist_camera=wrist,
     )
