@@ -1,15 +1,18 @@
 """Five-pose candidate evaluation: bin entry, pre-grasp, grasp, post-grasp lift, bin exit.
 
-Cheap vectorised tests run on every candidate first (approach angle, stroke, workspace, IK at the grasp pose over
-all analytic branches); collision checks then run in prior order with early exits, stopping once enough feasible
-grasps are found. Every rejected candidate keeps its reason: 'approach_angle', 'stroke', 'workspace', 'ik',
-'joint_limits', 'collision_<what>' (cell, object, clutter, self), 'payload', the grip mechanics' reasons
-('friction_cone', 'pad_contact', 'slip_torque', 'seal', 'suction_load', 'suction_torque', `grasp.quality`);
-candidates never reached by the collision stage are counted as 'not_evaluated'.
+Cheap vectorised tests run on every candidate first (approach angle, stroke, payload, workspace, the tool's boxes
+against the cell's boxes); then, best prior first and stopping once enough feasible grasps are found: IK at all
+five poses over all analytic branches (batched by chunks), the fcl collision checks with early exits, and last the
+grip mechanics (about 1 ms each, and they rarely reject a collision-free grasp; their predicted success only lowers
+a prior, so the unjudged prior is an upper bound and the order stays exact). Every rejected candidate keeps its
+reason: 'approach_angle', 'stroke', 'workspace', 'ik', 'joint_limits', 'collision_<what>' (cell, object, clutter,
+self), 'payload', the grip mechanics' reasons ('friction_cone', 'pad_contact', 'slip_torque', 'seal',
+'suction_load', 'suction_torque', `grasp.quality`); candidates never reached are counted as 'not_evaluated'.
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
 from collections import Counter
 from collections.abc import Callable
@@ -224,64 +227,85 @@ def evaluate_candidates(
             for j in idx[hits]:
                 reject(int(j), "collision_cell", POSE_NAMES[p_idx])
             idx = idx[np.logical_not(hits)]
-    # mechanics on the fitted template (friction cones, pad area, weight and torque; the cup's seal and load):
-    # candidates that will not hold are rejected; the rest rank by the predicted success times the geometric quality
+    # 2. prior order: object height, grasp quality, approach angle, priority. The grip mechanics scale the quality by
+    # their predicted success (<= 1), so the unjudged quality is an upper bound of each prior: candidates are taken
+    # best bound first and judged only when they are reached (the judge costs about a millisecond)
     success = np.array([c.quality for c in candidates])
-    if opts.mechanics is not None:
-        for j in idx:
-            c = candidates[int(j)]
-            t = targets[c.target]
-            mech = judge(c.scheme, t.mesh, t.mass_kg, t.world_from_object, g[int(j)], tool, opts.mechanics)
-            if not mech.ok:
-                reject(int(j), mech.reason, "grasp")
-            else:
-                success[int(j)] = mech.success * c.quality
-    # 2. prior order: object height, grasp quality, approach angle, priority
     heights = np.array([targets[c.target].height_m for c in candidates])
+    priorities = np.array([c.priority for c in candidates])
     prior = (
         opts.w_height * heights
         + opts.w_quality * success
         + opts.w_approach * (-approach[:, 2])
-        + opts.w_priority * np.array([c.priority for c in candidates])
+        + opts.w_priority * priorities
     )
     order = [int(i) for i in np.argsort(-prior, kind="stable") if verdict[int(i)] is None]
 
-    # 3. in prior order, chunk by chunk: IK at all five poses on all branches (one batch per chunk), then the
-    # collision checks; candidates after the stop are never solved ('not_evaluated')
+    # 3. best prior first: IK at all five poses on all branches (one batch per chunk of the bound order), the
+    # collision checks, then the mechanics; a candidate whose judged prior falls below its bound goes back in line
+    # at its exact prior (every prior left is at most its bound, so candidates leave in exact prior order, ties by
+    # index). Candidates never reached are 'not_evaluated'.
     feasible: list[Evaluation] = []
     per_target: Counter[int] = Counter()
     chunk = max(int(opts.ik_chunk), 1)
+    heap = [(-float(prior[i]), i) for i in order]  # sorted: already a heap
+    q_ik: dict[int, FloatArray] = {}
+    ok_ik: dict[int, FloatArray] = {}
+    waiting: dict[int, Evaluation] = {}  # collision-free and judged, back in line at the exact prior
     cursor = 0
-    done = False
-    while cursor < len(order) and not done:
-        block: list[int] = []
-        while cursor < len(order) and len(block) < chunk:
-            i = order[cursor]
-            cursor += 1
-            if opts.max_feasible_per_target and per_target[candidates[i].target] >= opts.max_feasible_per_target:
-                continue
-            block.append(i)
-        if not block:
+
+    def full(i: int) -> bool:
+        cap = opts.max_feasible_per_target
+        return bool(cap) and per_target[candidates[i].target] >= cap
+
+    while heap and not (opts.max_feasible and len(feasible) >= opts.max_feasible):
+        _, i = heapq.heappop(heap)
+        if verdict[i] is not None or full(i):
             continue
-        q_blk, ok_blk = _solve_ik(np.array(block), poses, tcp_from_flange, arm, reject)
-        for i in block:
-            if verdict[i] is not None:
-                continue
+        ev = waiting.pop(i, None)
+        if ev is None:
+            if i not in q_ik:
+                block = [i]
+                while cursor < len(order) and len(block) < chunk:
+                    j = order[cursor]
+                    cursor += 1
+                    if j != i and j not in q_ik and verdict[j] is None and not full(j):
+                        block.append(j)
+                q_blk, ok_blk = _solve_ik(np.array(block), poses, tcp_from_flange, arm, reject)
+                q_ik.update(q_blk)
+                ok_ik.update(ok_blk)
+                if i not in q_ik:  # rejected by IK
+                    continue
             c = candidates[i]
-            if opts.max_feasible and len(feasible) >= opts.max_feasible:
-                done = True
-                break
-            if opts.max_feasible_per_target and per_target[c.target] >= opts.max_feasible_per_target:
-                continue
-            ev = _check_collisions(i, c, poses[i], q_blk[i], ok_blk[i], targets[c.target], world, arm, home_q, opts)
-            verdict[i] = ev
-            if ev.feasible:
-                ev = _with_score(ev, prior[i], arm, home_q, world, opts)
+            ev = _check_collisions(i, c, poses[i], q_ik[i], ok_ik[i], targets[c.target], world, arm, home_q, opts)
+            if not ev.feasible:
                 verdict[i] = ev
-                feasible.append(ev)
-                per_target[c.target] += 1
-        if opts.max_feasible and len(feasible) >= opts.max_feasible:
-            done = True
+                continue
+            if opts.mechanics is not None:
+                # mechanics on the fitted template (friction cones, pad area, weight and torque; the cup's seal and
+                # load): candidates that will not hold are rejected; the rest rank by the predicted success times
+                # the geometric quality
+                t = targets[c.target]
+                mech = judge(c.scheme, t.mesh, t.mass_kg, t.world_from_object, g[i], tool, opts.mechanics)
+                if not mech.ok:
+                    reject(i, mech.reason, "grasp")
+                    continue
+                success[i] = mech.success * c.quality
+                exact = (
+                    opts.w_height * heights[i]
+                    + opts.w_quality * success[i]
+                    + opts.w_approach * (-approach[i, 2])
+                    + opts.w_priority * priorities[i]
+                )
+                if exact < prior[i]:
+                    prior[i] = exact
+                    waiting[i] = ev
+                    heapq.heappush(heap, (-float(exact), i))
+                    continue
+        ev = _with_score(ev, float(prior[i]), arm, home_q, world, opts)
+        verdict[i] = ev
+        feasible.append(ev)
+        per_target[candidates[i].target] += 1
     final = [
         v if v is not None else Evaluation(candidates[i], False, "not_evaluated", "", poses[i], prior=prior[i])
         for i, v in enumerate(verdict)
