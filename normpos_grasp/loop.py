@@ -24,10 +24,11 @@ from normpos_grasp.cell.config import BoxSpec, CellConfig
 from normpos_grasp.errors import DriverFault, InputError, RobotModelError, SafetyViolation, ZoneIntrusion
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.execution.gripper_config import ToolDriver
-from normpos_grasp.execution.plan import ExecutionReport, execute_plan
+from normpos_grasp.execution.plan import ExecuteOptions, ExecutionReport, execute_plan
 from normpos_grasp.execution.safety import SafetyLimits
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, process_frame
+from normpos_grasp.planning.capture import plan_capture_move
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.records.template import Template
@@ -44,7 +45,9 @@ class FrameSource(Protocol):
     """Where frames come from and how a pick is checked."""
 
     def capture(self) -> RGBDFrame:
-        """The next frame (camera with world_from_camera)."""
+        """The next frame (camera with world_from_camera). With a wrist camera (`cell.wrist_camera`) the loop sets
+        the frame's world_from_camera from the flange pose at capture time; a source that renders its frames has an
+        `aim(world_from_camera)` method the loop calls first."""
         ...
 
     def check_pick(self, plan: PickPlan) -> str:
@@ -84,7 +87,8 @@ class PickRecord:
 class SyntheticBinSource:
     """A bin of `count` parts in `cell`, rendered through the cell's camera with a sensor model.
 
-    parts: names of the library parts to draw from (empty: all); sensor: depth-noise preset.
+    parts: names of the library parts to draw from (empty: all); sensor: depth-noise preset. A wrist camera renders
+    from the pose `aim` gives (first: capture pose 0).
 
     Picks are replayed in MuJoCo (`validate_physics`) against the true poses; a held part leaves the bin.
     """
@@ -99,12 +103,20 @@ class SyntheticBinSource:
         validate_physics: bool = True,
         parts: Sequence[str] = (),
     ) -> None:
+        from normpos_grasp.sim.cameras import camera_intrinsics
         from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene
         from normpos_grasp.sim.sensor import sensor_preset
 
         self.cell = cell
         self.layout = compose_cell_scene(cell, count, seed, library, parts)
-        self.camera = cell_camera(cell, sensor)
+        wrist = cell.wrist_camera
+        self.camera = (
+            cell_camera(cell, sensor)
+            if wrist is None
+            else camera_intrinsics(sensor).with_extrinsics(
+                wrist.world_from_camera(cell.world_from_base, cell.robot_model, wrist.capture_q[0])
+            )
+        )
         self.sensor = sensor_preset(sensor)
         self.rng = np.random.default_rng(seed)
         self.validate_physics = validate_physics
@@ -114,6 +126,10 @@ class SyntheticBinSource:
     @property
     def exhausted(self) -> bool:
         return self.layout.n_parts == 0
+
+    def aim(self, world_from_camera: FloatArray) -> None:
+        """Render the next frames from `world_from_camera` (4, 4) (a wrist camera at its capture pose)."""
+        self.camera = self.camera.with_extrinsics(world_from_camera)
 
     def capture(self) -> RGBDFrame:
         from normpos_grasp.sim.dataset import render_frame
@@ -320,6 +336,14 @@ def run_cell_loop(
     the one it was planned in and the arm ended where it started; otherwise it re-captures and re-plans. An
     exception in the worker stops the arm (the driver's stop request, or stop() at rest) and leaves the loop with
     that exception; nothing is sent from its plan. Not combined with `watch` yet.
+
+    A wrist camera (`cell.wrist_camera`, docs/cells.md): each turn first moves the arm to capture pose 0
+    (`planning.capture`: a collision-free joint path, checked against the safety limits and run like a plan, or only
+    checked in a dry run), takes the frame there with world_from_camera = world_from_base @ base_from_flange(q) @
+    flange_from_camera at the joints the driver reports (the commanded ones in a dry run) and plans from there; a
+    frame without a feasible grasp moves on to the next capture pose before the turn gives up. A capture move that
+    cannot be planned raises PlanningError, one the limits refuse SafetyViolation, a fault on the way DriverFault
+    (the driver has stopped the arm). Not combined with `overlap` (the camera cannot see the bin while placing).
     """
     templates = list(library)
     limits = SafetyLimits.from_cell(cell)
@@ -327,6 +351,8 @@ def run_cell_loop(
         raise InputError("execute=True needs a connected driver")
     if overlap and watch is not None:
         raise InputError("overlap is not combined with a zone watch yet: run one or the other")
+    if overlap and cell.wrist_camera is not None:
+        raise InputError("overlap needs a fixed camera: a wrist camera cannot see the bin while the arm places")
     start_q = driver.state().q if (driver is not None and execute) else np.asarray(cell.home_q, dtype=np.float64)
     records: list[PickRecord] = []
     cell_now = cell  # the cell as filled so far: used pattern slots gone, the parts left there static boxes
@@ -357,14 +383,26 @@ def run_cell_loop(
                 frame, result, cycle_q = ahead.frame, ahead.result, ahead.start_q  # the plan starts where the arm is
                 timings = {"capture": ahead.capture_ms, **result.timings_ms, "overlap_wait": ahead.wait_ms}
             else:
-                t0 = time.perf_counter()
-                frame = pool.submit(source.capture).result() if pool is not None else source.capture()
-                cycle_q = np.array(start_q, dtype=np.float64)
-                t_capture = (time.perf_counter() - t0) * 1e3
-                if watch is not None:
-                    watch.check_drift(frame)  # CameraMoved ends the loop before anything is planned from a moved camera
-                result = process_frame(frame, segmenter, templates, cell_now, options, start_q)
-                timings = {"capture": t_capture, **result.timings_ms}
+                views = 1 if cell.wrist_camera is None else len(cell.wrist_camera.capture_q)
+                for view in range(views):  # a wrist camera tries its capture poses in turn
+                    t0 = time.perf_counter()
+                    if cell.wrist_camera is not None:
+                        frame = wrist_capture(cell_now, source, driver if execute else None, start_q, limits, view)
+                        start_q = capture_joints(cell_now, driver if execute else None, view)
+                    else:
+                        frame = pool.submit(source.capture).result() if pool is not None else source.capture()
+                    cycle_q = np.array(start_q, dtype=np.float64)
+                    t_capture = (time.perf_counter() - t0) * 1e3
+                    if watch is not None:
+                        watch.check_drift(frame)  # CameraMoved ends the loop before a moved camera is planned from
+                    result = process_frame(frame, segmenter, templates, cell_now, options, cycle_q)
+                    timings = {"capture": t_capture, **result.timings_ms}
+                    if result.plan is not None and result.plan.status == "ok":
+                        break
+                    if view + 1 < views:
+                        log.info(
+                            "pick %d: no feasible grasp from capture pose %d: trying pose %d", index + 1, view, view + 1
+                        )
             ahead = None
             if on_plan is not None:
                 on_plan(result)
@@ -561,6 +599,55 @@ class _Lookahead:
             log.warning("overlap: the arm is %.2e rad from the prepared plan's start: re-planned", err)
             return False
         return True
+
+
+def wrist_capture(
+    cell: CellConfig,
+    source: FrameSource,
+    driver: ArmDriver | None,
+    start_q: FloatArray,
+    limits: SafetyLimits,
+    view: int,
+) -> RGBDFrame:
+    """Move the arm from `start_q` (6,) rad to capture pose `view` of the cell's wrist camera (with `driver`
+    None: only checked against `limits`), then take a frame there whose camera carries world_from_camera =
+    world_from_base @ base_from_flange(q) @ flange_from_camera at the joints q the driver reports after the move (the
+    capture joints without a driver). A source with `aim` is told that pose first (a renderer draws from it)."""
+    wrist = cell.wrist_camera
+    if wrist is None:
+        raise InputError(f"cell {cell.name!r} has no wrist camera")
+    move = plan_capture_move(cell, start_q, view)
+    execute_plan(driver, move.to_json(cell), limits, dry_run=driver is None, options=_CAPTURE_MOVE)
+    q = capture_joints(cell, driver, view)
+    world_from_camera = wrist.world_from_camera(cell.world_from_base, cell.robot_model, q)
+    aim = getattr(source, "aim", None)
+    if callable(aim):
+        aim(world_from_camera)
+    frame = source.capture()
+    seen = frame.camera.world_from_camera
+    if seen is not None and np.allclose(seen, world_from_camera, atol=1e-9):
+        return frame  # the source drew it from there (its ground truth knows this frame object)
+    return RGBDFrame(
+        frame.rgb,
+        frame.depth_m,
+        frame.camera.with_extrinsics(world_from_camera),
+        frame.stamp,
+        frame.scene_id,
+        frame.im_id,
+    )
+
+
+# the move to a capture pose: no gripper action, the arm ends at the capture joints
+_CAPTURE_MOVE = ExecuteOptions(close_at=(), open_at=(), open_first=False, check_grip=False)
+
+
+def capture_joints(cell: CellConfig, driver: ArmDriver | None, view: int) -> FloatArray:
+    """(6,) rad the arm stands at for a wrist capture: the driver's joints, else capture pose `view`."""
+    if driver is not None:
+        return np.asarray(driver.state().q, dtype=np.float64)
+    if cell.wrist_camera is None:
+        raise InputError(f"cell {cell.name!r} has no wrist camera")
+    return np.asarray(cell.wrist_camera.capture_q[view], dtype=np.float64)
 
 
 def with_placed(cell: CellConfig, plan: PickPlan) -> CellConfig:

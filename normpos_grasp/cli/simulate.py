@@ -166,7 +166,7 @@ def _run(args: argparse.Namespace) -> int:
         relaxed_plan=not args.no_relaxed_plan,
         pick_unmatched=not args.no_pick_unmatched,
     )
-    if cell.bin is None or cell.world_from_camera is None:
+    if cell.bin is None or (cell.world_from_camera is None and cell.wrist_camera is None):
         raise InputError(
             f"--cell {args.cell}: simulate needs a cell with a bin and a camera pose "
             f"({'no bin' if cell.bin is None else 'no camera pose'})"

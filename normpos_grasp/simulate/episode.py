@@ -10,6 +10,12 @@ grasp, the cell plans once more with relaxed margins, nudges a part (a push plan
 replayed in physics) and captures a fresh frame. Everything is seeded from (config.seed, scene_index): the
 same call gives the same records on any machine and worker layout.
 
+A wrist-camera cell (`camera: {mount: wrist}`) moves to its capture pose before every frame: the move from where
+the last plan ended (home at the start) is planned (`planning.capture`, camera housing included), the frame is
+rendered from world_from_base @ base_from_flange(q_capture) @ flange_from_camera, and the pick is planned from the
+capture joints; a fresh capture (a perception retry) uses the next capture pose. A capture move that cannot be
+planned ends the scene with 'no_feasible_grasp'.
+
 Failure causes of a pick (first that applies): 'segmentation_miss' (no instance found, or the chosen instance
 covers no true part with IoU >= `match_iou`), 'wrong_fit' (no template fit was accepted, or the physics failed
 and the fitted pose is off the true one by more than `wrong_fit_m`), 'no_feasible_grasp' (accepted fits but
@@ -267,10 +273,16 @@ def _setup(config: SimulationConfig) -> _Setup:
         return hit
     cell = load_cell(path)
     _world_from_bin(cell)
-    if cell.world_from_camera is None:
+    wrist = cell.wrist_camera
+    if cell.world_from_camera is None and wrist is None:
         raise InputError(f"cell {cell.name!r} has no camera pose; simulate renders through the cell's camera")
     library = tuple(resolve_library(config.library))
-    camera = camera_intrinsics(config.sensor, config.resolution).with_extrinsics(cell.world_from_camera)
+    world_from_camera = (
+        cell.world_from_camera
+        if wrist is None
+        else wrist.world_from_camera(cell.world_from_base, cell.robot_model, wrist.capture_q[0])
+    )
+    camera = camera_intrinsics(config.sensor, config.resolution).with_extrinsics(world_from_camera)
     setup = _Setup(
         cell=cell,
         library=library,
@@ -311,13 +323,15 @@ def _perceive(
     scene_index: int,
     im_id: int,
     previous: _Perception | None,
+    world_from_camera: FloatArray | None = None,
 ) -> _Perception:
-    """Render the scene as it stands with sensor noise, then the product's perception (`pipeline.perceive`:
-    segment, measure, fit), keeping the accepted fits of objects that did not move since `previous`."""
+    """Render the scene as it stands with sensor noise (from `world_from_camera` when given: a wrist camera at its
+    capture pose), then the product's perception (`pipeline.perceive`: segment, measure, fit), keeping the accepted
+    fits of objects that did not move since `previous`."""
     from normpos_grasp.sim.dataset import render_frame
     from normpos_grasp.sim.render import make_renderer
 
-    camera = setup.camera
+    camera = setup.camera if world_from_camera is None else setup.camera.with_extrinsics(world_from_camera)
     renderer = make_renderer(layout, camera.width, camera.height, config.renderer)
     try:
         frame = render_frame(layout, renderer, camera, setup.sensor, rng, scene_id=scene_index, im_id=im_id)
@@ -338,6 +352,7 @@ def _perceive(
 
 def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
+    from normpos_grasp.planning.capture import plan_capture_move
     from normpos_grasp.planning.plan import PlanOptions, plan_pick
     from normpos_grasp.sim.scene import SceneOptions, compose_scene
 
@@ -377,22 +392,35 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     im_id = 0
     previous: _Perception | None = None
     max_picks = 3 * n_start + 3
+    wrist = cell.wrist_camera
+    arm_q = np.asarray(cell.home_q, dtype=np.float64)  # where the arm stands (a wrist camera moves it to capture)
     while templates and pick < max_picks and failures < config.max_consecutive_failures:
         t0 = time.perf_counter()
+        view = 0  # the wrist camera's capture pose: the first, then the next one for each retry
         captures = fitted = reused = nudges = hits = 0
         retries_left, nudges_left = config.perception_retries, config.max_nudges
         last = previous if config.reuse_fits else None
+        blocked = ""  # why the arm could not reach the capture pose
         while True:
             current = replace(layout, templates=tuple(templates), world_from_object=poses, static_boxes=statics)
-            seen = _perceive(setup, config, current, rng, scene_index, im_id, last)
+            start_q, world_from_camera = None, None
+            if wrist is not None:
+                try:
+                    move = plan_capture_move(cell, arm_q, view)
+                except NormposError as exc:
+                    blocked = str(exc)
+                    break
+                arm_q = start_q = move.capture_q
+                world_from_camera = move.world_from_camera
+            seen = _perceive(setup, config, current, rng, scene_index, im_id, last, world_from_camera)
             im_id += 1
             captures += 1
             fitted += len(seen.fits) - seen.result.reused_fits
             reused += seen.result.reused_fits
-            plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options)
+            plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options, start_q)
             if plan.status != "ok" and config.relaxed_plan:
                 relaxed = replace(plan_options, evaluation=config.relaxed_evaluation)
-                second = plan_pick(seen.fits, seen.normpositions, cell, relaxed)
+                second = plan_pick(seen.fits, seen.normpositions, cell, relaxed, start_q)
                 if second.status == "ok":
                     plan = second
             if plan.status == "ok" and plan.chosen is not None:
@@ -419,10 +447,21 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                     continue
                 break
             if retries_left > 0:
-                # a retry captures a fresh frame and fits everything anew (the kept fits led to no grasp)
+                # a retry captures a fresh frame and fits everything anew (the kept fits led to no grasp), with a
+                # wrist camera from its next capture pose
                 retries_left -= 1
                 last = None
+                if wrist is not None:
+                    view = (view + 1) % len(wrist.capture_q)
                 continue
+            break
+        if blocked:
+            records.append(
+                _record(
+                    scene_index, pick, "no_feasible_grasp", "", "", "", None, np.nan, np.nan, np.nan, len(templates),
+                    (captures, fitted, reused, nudges, hits), (time.perf_counter() - t0) * 1e3, 0.0, blocked,
+                )
+            )  # fmt: skip
             break
         previous = seen
         frame, instances, fits = seen.frame, seen.instances, seen.fits
@@ -450,6 +489,8 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             break
         cand = plan.chosen.candidate
         target = plan.targets[cand.target]
+        if plan.waypoints:  # the arm carries the plan out whatever physics says: the next capture move starts there
+            arm_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
         inst = next((i for i in instances if i.instance_id == target.instance_id), None)
         ious = [mask_iou(inst.mask, m) for m in frame.rendering.masks_visible] if inst is not None else []
         k = int(np.argmax(ious)) if ious else -1
