@@ -503,10 +503,12 @@ def _fit_candidates(
     return out
 
 
+_NEAR_COS = float(np.cos(np.deg2rad(8)))
+
+
 def _near(a: FloatArray, b: FloatArray, prep: PreparedTemplate) -> bool:
-    dt = np.linalg.norm(a[:3, 3] - b[:3, 3])
-    cosang = (np.trace(a[:3, :3] @ b[:3, :3].T) - 1) / 2
-    return bool(dt < 0.05 * prep.diameter and cosang > np.cos(np.deg2rad(8)))
+    """Poses within 5 % of the diameter and 8 degrees of each other."""
+    return bool(kernels.poses_near(np.ascontiguousarray(a), np.ascontiguousarray(b), 0.05 * prep.diameter, _NEAR_COS))
 
 
 def _refine(
@@ -693,14 +695,10 @@ def _ransac(prep: PreparedTemplate, meas: _Measured, opts: FitOptions, rng: np.r
 
 
 def _distinct(poses: FloatArray, frac: FloatArray, prep: PreparedTemplate, n: int) -> list[int]:
+    """Up to n indices of poses, highest `frac` first, none `_near` an earlier one."""
     order = np.argsort(-frac)
-    chosen: list[int] = []
-    for i in order:
-        if not any(_near(poses[i], poses[j], prep) for j in chosen):
-            chosen.append(int(i))
-        if len(chosen) >= n:
-            break
-    return chosen
+    chosen = kernels.distinct_poses(np.ascontiguousarray(poses), order, 0.05 * prep.diameter, _NEAR_COS, n)
+    return [int(i) for i in chosen]
 
 
 def _add_s(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:
@@ -719,12 +717,15 @@ def _add_sym(prep: PreparedTemplate, a: _Candidate, b: _Candidate) -> float:
     """
     sub = prep.samples[:: max(1, len(prep.samples) // 300)]
     pa = (sub * a.scale - a.object_from_frame[:3, 3]) @ a.object_from_frame[:3, :3]
-    best = np.inf
-    for sym in prep.sym:
-        ps = (sub @ sym[:3, :3].T + sym[:3, 3]) * b.scale
-        ps = (ps - b.object_from_frame[:3, 3]) @ b.object_from_frame[:3, :3]
-        best = min(best, float(np.mean(np.linalg.norm(pa - ps, axis=1))))
-    return best
+    return float(
+        kernels.add_sym(
+            np.ascontiguousarray(sub),
+            prep.sym,
+            np.ascontiguousarray(pa),
+            float(b.scale),
+            np.ascontiguousarray(b.object_from_frame),
+        )
+    )
 
 
 def _decide(

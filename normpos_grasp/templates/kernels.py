@@ -1032,3 +1032,89 @@ def knn_points(pts, k):  # type: ignore[no-untyped-def]
         for j in range(k):
             out[i, j] = bi[j]
     return out
+
+
+# -- fit helpers (hypothesis bookkeeping and the full pose score, one call each) ----------------------------------
+
+
+@njit(cache=True, nogil=True)
+def poses_near(a, b, max_dt, min_cos):  # type: ignore[no-untyped-def]
+    """Whether (4, 4) poses a and b differ by less than max_dt metres in translation and by a rotation whose
+    (trace - 1) / 2 exceeds min_cos (as `fit._near`)."""
+    d0 = a[0, 3] - b[0, 3]
+    d1 = a[1, 3] - b[1, 3]
+    d2 = a[2, 3] - b[2, 3]
+    dt = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    tr = 0.0
+    for i in range(3):
+        tr += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
+    return dt < max_dt and (tr - 1.0) / 2.0 > min_cos
+
+
+@njit(cache=True, nogil=True)
+def distinct_poses(poses, order, max_dt, min_cos, n):  # type: ignore[no-untyped-def]
+    """Up to n indices of (H, 4, 4) poses, taken in `order` (H,), none near an earlier chosen one (`poses_near`)."""
+    chosen = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in order:
+        if m >= n:
+            break
+        ok = True
+        for c in range(m):
+            if poses_near(poses[i], poses[chosen[c]], max_dt, min_cos):
+                ok = False
+                break
+        if ok:
+            chosen[m] = i
+            m += 1
+    return chosen[:m]
+
+
+@njit(cache=True, nogil=True)
+def add_sym(sub, syms, pa, scale_b, pose_b):  # type: ignore[no-untyped-def]
+    """Smallest mean distance between posed points pa (N, 3) and template points sub (N, 3) relabelled by each
+    symmetry (M, 4, 4), scaled by scale_b and posed by the inverse of object_from_frame pose_b (as `fit._add_sym`)."""
+    n = sub.shape[0]
+    best = np.inf
+    for k in range(syms.shape[0]):
+        acc = 0.0
+        for i in range(n):
+            s0, s1, s2 = sub[i, 0], sub[i, 1], sub[i, 2]
+            q0 = (s0 * syms[k, 0, 0] + s1 * syms[k, 0, 1] + s2 * syms[k, 0, 2] + syms[k, 0, 3]) * scale_b - pose_b[0, 3]
+            q1 = (s0 * syms[k, 1, 0] + s1 * syms[k, 1, 1] + s2 * syms[k, 1, 2] + syms[k, 1, 3]) * scale_b - pose_b[1, 3]
+            q2 = (s0 * syms[k, 2, 0] + s1 * syms[k, 2, 1] + s2 * syms[k, 2, 2] + syms[k, 2, 3]) * scale_b - pose_b[2, 3]
+            dd = 0.0
+            for v in range(3):
+                e = pa[i, v] - (q0 * pose_b[0, v] + q1 * pose_b[1, v] + q2 * pose_b[2, v])
+                dd += e * e
+            acc += math.sqrt(dd)
+        best = min(best, acc / n)
+    return best
+
+
+@njit(cache=True, nogil=True)
+def fit_stats_many(r, d, scales, thr, spacing, beside_spacings, beside_thr, neighbours, k, floor_m):  # type: ignore[no-untyped-def]
+    """`fit_stats` of each row of r, d (H, P) with scales (H,): inlier ratio, RMSE and consistency, (H,) each."""
+    h = r.shape[0]
+    ratio = np.empty(h)
+    rmse = np.empty(h)
+    cons = np.empty(h)
+    for i in range(h):
+        ratio[i], rmse[i], cons[i] = fit_stats(
+            r[i], d[i], scales[i], thr, spacing, beside_spacings, beside_thr, neighbours, k, floor_m
+        )
+    return ratio, rmse, cons
+
+
+@njit(cache=True, nogil=True)
+def depth_scores(samples, normals, cfo, scale, spacing, fx, fy, cx, cy, depth, tol, rad, front_lim):  # type: ignore[no-untyped-def]
+    """Depth-image evidence of one pose in a pinhole camera (no distortion), in one call: `visible_points`,
+    `project_pinhole`, `depth_evidence` and `silhouette_evidence`. Returns (n_visible, supported, inside and not
+    occluded, violating, missing, not grazing, occluded, explained, front)."""
+    pv, nv = visible_points(samples, normals, cfo, scale, spacing)
+    if pv.shape[0] == 0:
+        return 0, 0, 0, 0, 0, 0, 0, 0, 0
+    uv = project_pinhole(pv, fx, fy, cx, cy)
+    n_sup, n_den, n_vio, n_mis, n_ng, n_occ = depth_evidence(pv, nv, uv, depth, tol, rad)
+    _, n_exp, n_front = silhouette_evidence(pv, uv, depth, tol, rad, front_lim)
+    return pv.shape[0], n_sup, n_den, n_vio, n_mis, n_ng, n_occ, n_exp, n_front

@@ -7,6 +7,7 @@ same ray (the sensor saw through where the template claims matter): impossible f
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,10 +96,20 @@ def score_bounds(
         prep.kd,
     )
     tol = float(np.median(thr)) if thr_median is None else thr_median
-    bound = np.zeros(h)
-    for i in range(h):
-        ir, rmse, consistency = _fit_stats(prep, r[i], d[i], float(scales[i]), pts, thr, neighbours)
-        bound[i] = _combine(ir, rmse, 1.0, 0.0, tol) * consistency
+    nb = neighbours if neighbours is not None else consistency_neighbours(pts)
+    ratio, rmse, consistency = kernels.fit_stats_many(
+        r,
+        d,
+        np.ascontiguousarray(scales, dtype=np.float64),
+        np.ascontiguousarray(thr, dtype=np.float64),
+        prep.spacing,
+        BESIDE_SPACINGS,
+        BESIDE_THR,
+        nb,
+        nb.shape[1],
+        SYSTEMATIC_FLOOR_M,
+    )
+    bound = np.array([_combine(ratio[i], rmse[i], 1.0, 0.0, tol) * consistency[i] for i in range(h)])
     return bound, r, d
 
 
@@ -169,6 +180,39 @@ def evaluate(
         centre = meas_tree.data.mean(axis=0)
         cff = invert_pose(look_at(viewpoint, centre, up=_any_up(centre - viewpoint)))
     cfo = np.ascontiguousarray(cff @ frame_from_object, dtype=np.float64)
+    if camera is not None and depth_m is not None and not camera.has_distortion:
+        n_vis, n_sup, n_den, n_vio, n_mis, n_ng, n_occ, n_exp, n_front = kernels.depth_scores(
+            prep.samples,
+            prep.normals,
+            cfo,
+            float(scale),
+            prep.spacing,
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            np.ascontiguousarray(depth_m, dtype=np.float64),
+            tol,
+            FREE_SPACE_WINDOW_PX,
+            FRONT_LIMIT_TOL * tol,
+        )
+        if n_vis == 0:
+            return PoseScore(0.0, inlier_ratio, rmse, 0.0, 1.0, 0, 0.0, consistency)
+        coverage = float(n_sup) / max(n_den, 1)
+        fsv = float(n_vio + 0.5 * n_mis) / max(n_ng, 1)
+        score = _combine(inlier_ratio, rmse, coverage, fsv, tol) * consistency
+        return PoseScore(
+            score,
+            inlier_ratio,
+            rmse,
+            coverage,
+            fsv,
+            n_vis,
+            float(n_occ) / n_vis,
+            consistency,
+            n_exp / n_vis,
+            n_front / n_vis,
+        )
     pv, nv = kernels.visible_points(prep.samples, prep.normals, cfo, float(scale), prep.spacing)
     n_vis = len(pv)
     if n_vis == 0:
@@ -218,10 +262,12 @@ def evaluate(
 
 
 def _combine(inlier_ratio: float, rmse: float, coverage: float, fsv: float, tol: float) -> float:
-    if not np.isfinite(rmse):
+    if not math.isfinite(rmse):
         return 0.0
-    fit = float(np.exp(-0.5 * (rmse / max(tol, 1e-6)) ** 2))
-    return float(np.clip(inlier_ratio * (0.5 + 0.5 * fit) * min(1.0, coverage / 0.9) ** 2 * (1.0 - fsv) ** 2, 0, 1))
+    fit = math.exp(-0.5 * (rmse / max(tol, 1e-6)) ** 2)
+    return min(
+        max(float(inlier_ratio * (0.5 + 0.5 * fit) * min(1.0, coverage / 0.9) ** 2 * (1.0 - fsv) ** 2), 0.0), 1.0
+    )
 
 
 SMOOTH_K = 16
