@@ -2,11 +2,17 @@
 
 Bins: `loop.SyntheticBinSource` in examples/cells/ur5e_bin_parallel.yaml (`--parts` physics-settled parts, seeds
 `--seed`, `--seed` + 1, ...), perceived with the frame's true masks (`perceive`, everything after segmentation as
-the pipeline runs it) and planned with `plan_pick` once per timing variant, same fits, same deterministic planner:
-- trapezoid: `TimingOptions(method='trapezoid')`, rest-to-rest trapezoids per segment (the timing before Ruckig);
-- ruckig: the default (`planning.timing.time_path`): time-optimal, jerk-limited, blending through waypoints;
-- ruckig, no blends: the same profiles resting at every waypoint (what blending adds);
-- ruckig, jerk x2: `--jerk-factor` times the default jerk cap (what the jerk cap costs).
+the pipeline runs it) and planned with `plan_pick` once per variant, same fits, same deterministic planner:
+- nearest branches, trapezoid: `PlanOptions(quickest_branches=False)`, `TimingOptions(method='trapezoid')`: the
+  evaluation's joint angles, the place pose as given, rest-to-rest trapezoids per segment (the first timing);
+- nearest branches, ruckig: the same branches timed by `planning.timing.time_path` (time-optimal, jerk-limited,
+  blending through waypoints): the cycle before `planning.branches`;
+- quickest branches, ruckig: the default: joint 6 turned the quicker way at the grasp (a half turn where the tool
+  looks the same), the equivalent place pose and IK branch with the quickest estimated transfer;
+- no blends: the default resting at every waypoint (what blending adds);
+- jerk x2: `--jerk-factor` times the default jerk cap (what the planner's jerk cap costs; not a cell cap).
+Each plan's arm motion is split at its waypoints: approach (home -> entry), descend (entry -> grasp), lift
+(grasp -> retreat), transfer (retreat -> pre_place), place (pre_place -> place), retreat (place -> post_place).
 Every plan is then checked as execution checks it before sending: plan.json round trip, `execution.plan.check_plan`
 with `SafetyLimits.from_cell` (waypoints, segments, every trajectory sample: joint limits, workspace, speed and
 acceleration caps by finite differences); the largest sample speed, acceleration and jerk are printed as shares of
@@ -36,7 +42,12 @@ from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.sim.parts import default_part_library
 
 CELL = "examples/cells/ur5e_bin_parallel.yaml"
-LINES = (("entry", "pre_grasp"), ("pre_grasp", "grasp"), ("grasp", "lift"), ("lift", "retreat"))
+LINES: tuple[tuple[str, str], ...] = (
+    ("entry", "pre_grasp"),
+    ("pre_grasp", "grasp"),
+    ("grasp", "lift"),
+    ("lift", "retreat"),
+)
 LINES += (("pre_place", "place"), ("place", "post_place"))
 
 
@@ -64,6 +75,29 @@ def line_deviation_mm(plan: PickPlan, cell: Any) -> float:
         rel = tcp[i : j + 1] - p0
         worst = max(worst, float(np.linalg.norm(rel - np.outer(rel @ u, u), axis=1).max()))
     return worst * 1e3
+
+
+SEGMENTS = (
+    ("approach", "home", "entry"),
+    ("descend", "entry", "grasp"),
+    ("lift", "grasp", "retreat"),
+    ("transfer", "retreat", "pre_place"),
+    ("place", "pre_place", "place"),
+    ("retreat", "place", "post_place"),
+)
+
+
+def segment_times(plan: PickPlan) -> list[float]:
+    """Seconds of arm motion per SEGMENTS entry: between the trajectory samples at the plan's waypoints (each
+    waypoint is a sample of the trajectory; found in order, post_place repeating pre_place's pose)."""
+    traj = plan.trajectory
+    assert traj is not None
+    at: dict[str, float] = {}
+    start = 0
+    for w in plan.waypoints:
+        i = start + int(np.argmin(np.abs(traj.q[start:] - w.q).max(axis=1)))
+        at[w.name], start = float(traj.t[i]), i
+    return [at[b] - at[a] for _, a, b in SEGMENTS]
 
 
 def cap_shares(plan: PickPlan, limits: SafetyLimits, jerk_cap: float) -> tuple[float, float, float]:
@@ -94,11 +128,15 @@ def main() -> None:
     library = default_part_library()
     limits = SafetyLimits.from_cell(cell)
     base = TimingOptions()
+    nearest = PlanOptions(quickest_branches=False)
     variants = {
-        "trapezoid (before)": TimingOptions(method="trapezoid"),
-        "ruckig (after)": base,
-        "ruckig, no blends": replace(base, blend=False),
-        f"ruckig, jerk x{args.jerk_factor:g}": replace(base, jerk_rad_s3=base.jerk_rad_s3 * args.jerk_factor),
+        "nearest branches, trapezoid": replace(nearest, timing=TimingOptions(method="trapezoid")),
+        "nearest branches, ruckig (before)": nearest,
+        "quickest branches, ruckig (after)": PlanOptions(),
+        "quickest branches, ruckig, no blends": PlanOptions(timing=replace(base, blend=False)),
+        f"quickest branches, ruckig, jerk x{args.jerk_factor:g}": PlanOptions(
+            timing=replace(base, jerk_rad_s3=base.jerk_rad_s3 * args.jerk_factor)
+        ),
     }
     print("# bench_cycle")
     print(
@@ -108,13 +146,14 @@ def main() -> None:
     )
     print(f"load average before: {' / '.join(f'{v:.2f}' for v in os.getloadavg())}")
     rows: dict[str, list[tuple[float, float, float, float, float, float]]] = {k: [] for k in variants}
+    parts: dict[str, list[list[float]]] = {k: [] for k in variants}
     for b in range(args.bins):
         source = SyntheticBinSource(cell, count=args.parts, seed=args.seed + b, validate_physics=False, library=library)
         frame = source.capture()
         result = perceive(frame, source.ground_truth_segmenter(), library, PipelineOptions())
         line = []
-        for name, timing in variants.items():
-            plan = plan_pick(result.fits, result.normpositions, cell, PlanOptions(timing=timing))
+        for name, options in variants.items():
+            plan = plan_pick(result.fits, result.normpositions, cell, options)
             if plan.status != "ok" or plan.trajectory is None:
                 line.append(f"{name}: {plan.status}")
                 continue
@@ -122,6 +161,7 @@ def main() -> None:
             v, a, j = cap_shares(plan, limits, base.jerk_rad_s3)
             dev = line_deviation_mm(plan, cell)
             rows[name].append((plan.trajectory.duration_s, v, a, j, dev, plan.timing_ms.get("timing", 0.0)))
+            parts[name].append(segment_times(plan))
             line.append(f"{name}: {plan.trajectory.duration_s:.2f} s")
         print(f"bin {b} (seed {args.seed + b}): " + ", ".join(line))
     print("\n## Cycle (plan trajectory duration) and checks, per variant")
@@ -140,6 +180,14 @@ def main() -> None:
             f"{r[:, 2].max():.3f} | {r[:, 3].max():.2f} | {r[:, 4].max():.3f} | {np.median(r[:, 5]):.1f} |"
         )
     print("every plan passed execution.plan.check_plan (SafetyLimits.from_cell) on its plan.json")
+    print("\n## Where the seconds go: median s per segment (over the bins)")
+    print("| variant | " + " | ".join(name for name, _, _ in SEGMENTS) + " | cycle |")
+    print("|---|" + "---|" * (len(SEGMENTS) + 1))
+    for name, ps in parts.items():
+        if ps:
+            med = np.median(np.array(ps), axis=0)
+            cycle = np.median(np.array(rows[name])[:, 0])
+            print(f"| {name} | " + " | ".join(f"{m:.2f}" for m in med) + f" | {cycle:.2f} |")
     print(f"load average after: {' / '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
 

@@ -23,9 +23,10 @@ from normpos_grasp.errors import PlanningError
 from normpos_grasp.geometry.transforms import invert_pose
 from normpos_grasp.grasp.candidates import CandidateOptions, candidates_for_object, primitive_template
 from normpos_grasp.kinematics.arm import ArmModel
+from normpos_grasp.planning.branches import half_turn_symmetric, place_poses, quickest_grasp, ranked_place_configs
 from normpos_grasp.planning.evaluate import EvaluationOptions, evaluate_candidates
 from normpos_grasp.planning.rrt import MotionOptions, plan_joint_motion
-from normpos_grasp.planning.timing import PathPiece, TimingOptions, time_parameterise, time_path
+from normpos_grasp.planning.timing import PathPiece, TimingOptions, joint_caps, time_parameterise, time_path
 from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.normpos import NormPosition
 from normpos_grasp.records.plan import Evaluation, PickPlan, Target, Trajectory, Waypoint
@@ -54,6 +55,9 @@ class PlanOptions:
     depth edges), not obstacles.
     neighbour_tolerance_m: points of one instance that lie inside ANOTHER accepted fit's template box grown by this
     much are that neighbour's (a mask that bled across the border between touching parts), not clutter, m.
+    quickest_branches: reach the grasp with joint 6 turned by the quicker multiple of pi and place through the
+    equivalent place pose and IK branch with the quickest estimated motion (`planning.branches`); False: the
+    evaluation's joint angles and the place pose as given.
     """
 
     cartesian_step_m: float = 0.01
@@ -65,6 +69,7 @@ class PlanOptions:
     max_plan_attempts: int = 12
     clutter_min_points: int = 3
     neighbour_tolerance_m: float = 0.003
+    quickest_branches: bool = True
     candidates: CandidateOptions = CandidateOptions()
     evaluation: EvaluationOptions = EvaluationOptions()
     motion: MotionOptions = MotionOptions()
@@ -238,14 +243,22 @@ def plan_from_candidates(
     place_name = ""
     ranked = list(result.ranked)
     attempts = 0
+    # the same grasps reached with joint 6 turned the quicker way (a half turn where the tool looks the same)
+    caps = joint_caps(cell.motion.joint_velocity, cell.motion.joint_acceleration, opts.timing)
+    turn_ok = half_turn_symmetric(cell.tool)
     while chosen is None:
         for ev in ranked:
             if attempts >= opts.max_plan_attempts:
                 break
             attempts += 1
+            path_ev = ev
+            if opts.quickest_branches:
+                path_ev = quickest_grasp(
+                    ev, arm, cell.tool.flange_from_tcp, home, caps, turn_ok, lambda q: world.check_arm(q) is None
+                )
             try:
                 waypoints, pieces, place_name = _build_path(
-                    ev, targets[ev.candidate.target], world, arm, cell, home, opts
+                    path_ev, targets[ev.candidate.target], world, arm, cell, home, opts
                 )
             except PlanningError as exc:
                 reason = getattr(exc, "reason", "path")
@@ -254,7 +267,8 @@ def plan_from_candidates(
                 idx = next(i for i, e in enumerate(evaluations) if e is ev)
                 evaluations[idx] = Evaluation(ev.candidate, False, reason, "", ev.world_from_tcp, ev.q, ev.branch)
                 continue
-            chosen = ev
+            chosen = path_ev
+            evaluations[next(i for i, e in enumerate(evaluations) if e is ev)] = path_ev
             break
         pending = [i for i, e in enumerate(evaluations) if e.reason == "not_evaluated"]
         if chosen is not None or attempts >= opts.max_plan_attempts or not pending:
@@ -409,21 +423,28 @@ def _place_motion(
     tcp_from_flange: FloatArray,
     free_held: _ConfigFree,
     opts: PlanOptions,
+    caps: tuple[FloatArray, FloatArray, FloatArray],
+    turn_ok: bool,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, PlaceSpec]:
-    """Straight pre-place -> place (held) and place -> post-place (released) lines on the branch nearest `q_from`."""
+    """Straight pre-place -> place (held) and place -> post-place (released) lines through the place pose, or an
+    equivalent one (`branches.place_poses`, with opts.quickest_branches; `turn_ok`: the tool looks the same turned
+    half a turn), on the branch with the quickest estimated motion from `q_from` (caps: `timing.joint_caps`) that
+    admits them."""
     place_pose = _place_pose(place, tcp_from_object, target, opts.place_drop_m)
-    pre_place = place_pose.copy()
-    pre_place[:3, 3] -= place_pose[:3, 2] * place.approach_m
-    q_pp, ok_pp = arm.ik(pre_place @ tcp_from_flange, q_from)
-    branches = np.flatnonzero(ok_pp[0])
-    if len(branches) == 0:
+    verts = np.asarray(target.mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
+    poses = [place_pose]
+    if opts.quickest_branches:
+        poses = place_poses(place_pose, tcp_from_object, verts, turn_ok and not place.align_part)
+    options = ranked_place_configs(
+        poses, place.approach_m, q_from, arm, tcp_from_flange, caps if opts.quickest_branches else None
+    )
+    if not options:
         raise _PathRejected(f"place {place.name!r}: pre-place pose out of reach", "place_ik")
-    branches = branches[np.argsort(np.abs(q_pp[0, branches] - q_from).sum(axis=1))]
     last = _PathRejected(f"place {place.name!r}: no branch", "place_ik")
-    for pb in branches:
+    for place_pose, pre_place, q_pp, pb in options:
         try:
-            seg_place, tcp_place = _line(arm, tcp_from_flange, pre_place, place_pose, q_pp[0, pb], int(pb), opts)
-            seg_post, tcp_post = _line(arm, tcp_from_flange, place_pose, pre_place, seg_place[-1], int(pb), opts)
+            seg_place, tcp_place = _line(arm, tcp_from_flange, pre_place, place_pose, q_pp, pb, opts)
+            seg_post, tcp_post = _line(arm, tcp_from_flange, place_pose, pre_place, seg_place[-1], pb, opts)
         except _PathRejected as exc:
             last = exc
             continue
@@ -504,8 +525,10 @@ def _build_path(
         for place in cell.places:
             try:
                 found = _place_motion(
-                    place, target, tcp_from_object, seg_exit[-1], world, arm, tcp_from_flange, free_held, opts
-                )
+                    place, target, tcp_from_object, seg_exit[-1], world, arm, tcp_from_flange, free_held, opts,
+                    joint_caps(cell.motion.joint_velocity, cell.motion.joint_acceleration, opts.timing),
+                    half_turn_symmetric(tool),
+                )  # fmt: skip
                 place_err = None
                 break
             except _PathRejected as exc:

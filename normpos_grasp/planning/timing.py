@@ -58,6 +58,43 @@ def _trapezoid(length: float, v: float, a: float) -> tuple[float, float, float]:
     return t_acc, (length - a * t_acc * t_acc) / v, v
 
 
+def rest_to_rest_s(distance: ArrayLike, v: ArrayLike, a: ArrayLike, j: ArrayLike) -> FloatArray:
+    """Shortest rest-to-rest time, s, over `distance` (rad or m, elementwise) within speed `v`, acceleration `a` and
+    jerk `j` caps (the symmetric jerk-limited profile Ruckig finds for one degree of freedom)."""
+    d = np.abs(np.asarray(distance, dtype=np.float64))
+    v, a, j = (np.broadcast_to(np.asarray(x, dtype=np.float64), d.shape) for x in (v, a, j))
+
+    def ramp(vp: FloatArray) -> FloatArray:  # time from rest to speed vp (and back): a is reached when vp > a^2/j
+        return np.where(vp <= a * a / j, 2.0 * np.sqrt(vp / j), vp / a + a / j)
+
+    t_full = ramp(v)
+    cruise = d >= v * t_full  # ramps up and down cover vp * ramp(vp)
+    vp_short = np.cbrt(d * d * j / 4.0)  # vp * 2 sqrt(vp / j) = d
+    vp_long = 0.5 * a * (-a / j + np.sqrt(a * a / (j * j) + 4.0 * d / a))  # vp (vp / a + a / j) = d
+    vp = np.where(vp_short <= a * a / j, vp_short, vp_long)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(cruise, t_full + np.where(v > 0, d / v, 0.0), 2.0 * ramp(vp))
+    return np.where(d > 0.0, t, 0.0)
+
+
+def joint_caps(
+    vmax: ArrayLike, amax: ArrayLike, options: TimingOptions | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(velocity, acceleration, jerk) caps (6,) the Ruckig profiles plan for: the cell's caps (rad/s, rad/s^2) and
+    options.jerk_rad_s3, each times options.cap_share."""
+    opts = options or TimingOptions()
+    share = opts.cap_share
+    v = np.broadcast_to(np.asarray(vmax, dtype=np.float64), (6,)) * share
+    a = np.broadcast_to(np.asarray(amax, dtype=np.float64), (6,)) * share
+    return v, a, np.full(6, opts.jerk_rad_s3 * share)
+
+
+def joint_motion_s(a: FloatArray, b: FloatArray, caps: tuple[FloatArray, FloatArray, FloatArray]) -> float:
+    """Rest-to-rest time, s, of a joint motion a -> b (6,) rad within caps (velocity, acceleration, jerk) (6,):
+    the slowest joint's `rest_to_rest_s` (a time-synchronised profile cannot be shorter)."""
+    return float(np.max(rest_to_rest_s(np.asarray(b) - np.asarray(a), *caps)))
+
+
 def time_segment(
     points: FloatArray,
     vmax: FloatArray,
