@@ -8,6 +8,9 @@ All hypotheses advance together: one KD-tree / grid query and one batch of 6x6 (
 
 from __future__ import annotations
 
+import threading
+import weakref
+
 import numpy as np
 
 from normpos_grasp.templates import kernels
@@ -15,6 +18,19 @@ from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import FloatArray
 
 NORMAL_COS = kernels.NORMAL_COS
+
+_CANDIDATES: weakref.WeakKeyDictionary[PreparedTemplate, tuple[np.ndarray, ...]] = weakref.WeakKeyDictionary()
+_LOCK = threading.Lock()
+
+
+def candidates(prep: PreparedTemplate) -> tuple[np.ndarray, ...]:
+    """The template's exact-nearest candidates sorted per grid cell (`kernels.sorted_candidates`), built once."""
+    with _LOCK:
+        hit = _CANDIDATES.get(prep)
+        if hit is None:
+            hit = kernels.sorted_candidates(prep.samples, prep.grid[6], prep.grid)
+            _CANDIDATES[prep] = hit
+    return hit
 
 
 def correspond(
@@ -134,8 +150,10 @@ def icp(
             prep.normals,
             prep.grid,
             prep.kd,
+            cand,
         )
 
+    cand = candidates(prep)
     if prune_after and h > prune_keep > 0 and prune_after < iterations:
         run(prune_after)
         top = np.sort(np.argsort(-frac, kind="stable")[:prune_keep])

@@ -101,6 +101,57 @@ def build_kdtrees(samples: FloatArray, groups: list[IntArray]) -> tuple[np.ndarr
     )
 
 
+def sorted_candidates(
+    samples: FloatArray, normal_bin: IntArray, grid: tuple[np.ndarray, ...]
+) -> tuple[np.ndarray, ...]:
+    """The grid's exact-nearest candidates packed for `_correspond_block`: each cell's list (same ranges
+    cand_start) sorted by distance to the cell centre; returns (points (C, 3), distance to the centre (C,),
+    sample index (C,), normal bin (C,))."""
+    origin, cellarr, cells, cand_start, cand_idx, _, _ = grid
+    return _sort_candidates(
+        samples, np.asarray(normal_bin, dtype=np.int64), origin, float(cellarr[0]), cells.shape[0], cand_start, cand_idx
+    )
+
+
+@njit(cache=True, nogil=True)
+def _sort_candidates(samples, normal_bin, origin, cell, g, cand_start, cand_idx):  # type: ignore[no-untyped-def]
+    """`sorted_candidates` of one grid (the cells' lists sorted in place, stable)."""
+    c_all = cand_idx.shape[0]
+    pts = np.empty((c_all, 3))
+    key = np.empty(c_all)
+    sidx = np.empty(c_all, dtype=np.int64)
+    sbin = np.empty(c_all, dtype=np.int64)
+    for c in range(g * g * g):
+        lo = cand_start[c]
+        hi = cand_start[c + 1]
+        if hi <= lo:
+            continue
+        i = c // (g * g)
+        j = (c // g) % g
+        k = c % g
+        m0 = origin[0] + (i + 0.5) * cell
+        m1 = origin[1] + (j + 0.5) * cell
+        m2 = origin[2] + (k + 0.5) * cell
+        dist = np.empty(hi - lo)
+        for m in range(lo, hi):
+            s = cand_idx[m]
+            e0 = samples[s, 0] - m0
+            e1 = samples[s, 1] - m1
+            e2 = samples[s, 2] - m2
+            dist[m - lo] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        order = np.argsort(dist, kind="mergesort")
+        for q in range(hi - lo):
+            m = lo + q
+            s = cand_idx[lo + order[q]]
+            key[m] = dist[order[q]]
+            sidx[m] = s
+            sbin[m] = normal_bin[s]
+            pts[m, 0] = samples[s, 0]
+            pts[m, 1] = samples[s, 1]
+            pts[m, 2] = samples[s, 2]
+    return pts, key, sidx, sbin
+
+
 @njit(cache=True, nogil=True)
 def _kd_nearest(  # type: ignore[no-untyped-def]
     q0, q1, q2, root, samples, dim, split, left, right, start, end, perm, best_d2, best_i, stack_n, stack_b
@@ -157,18 +208,22 @@ def _normal_bin(n0, n1, n2):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def _correspond_block(y, ny, exact, max_d, samples, normals, grid, kd, stack_n, stack_b, r, d, sel):  # type: ignore[no-untyped-def]
+def _correspond_block(y, ny, exact, max_d, samples, normals, grid, kd, cand, stack_n, stack_b, r, d, sel):  # type: ignore[no-untyped-def]
     """Closest normal-compatible samples of object-frame points y (P, 3) with normals ny (P, 3), into
     r (P,) point-to-plane residual, d (P,) distance (inf when none) and sel (P,) sample index.
 
     Grid mode: the grid cell's nearest sample, else (normal disagrees, cos <= 0.35) the cell's nearest sample of
     the normal's bin; points outside the grid get none. Exact mode: the exact nearest sample (KD-tree), else the
     exact nearest one of the normal's bin; a point that provably lies farther than max_d (metres) from every
-    sample (the grid cell's distance bound) gets distance inf without a search. Written as one loop (per-point
-    helper calls cost more than the work).
+    sample (the grid cell's distance bound) gets distance inf without a search. `cand` (`sorted_candidates`, or
+    empty arrays): the cells' candidates packed and sorted by distance to the cell centre, so a scan stops at the
+    first candidate that cannot be nearer (triangle inequality); the same nearest samples (up to exact ties).
+    Written as one loop (per-point helper calls cost more than the work).
     """
     origin, cellarr, cells, cand_start, cand_idx, cell_dist, sample_bin = grid
     dim, split, left, right, start, end, perm, roots = kd
+    cand_pts, cand_key, cand_sample, cand_bin = cand
+    packed = cand_key.shape[0] > 0
     cell = cellarr[0]
     pad = cellarr[1]
     half_diag = 0.5 * math.sqrt(3.0) * cell
@@ -207,7 +262,44 @@ def _correspond_block(y, ny, exact, max_d, samples, normals, grid, kd, stack_n, 
             bin_d2 = np.inf  # nearest candidate of the normal's bin, exact when within the cell's reach
             bin_s = -1
             listed = inside and cand_start[c + 1] > cand_start[c]
-            if listed:
+            if listed and packed:
+                # sorted scan: a candidate key[m] from the cell centre is at least key[m] - |y - centre| away
+                e0 = y0 - (o0 + (i + 0.5) * cell)
+                e1 = y1 - (o1 + (j + 0.5) * cell)
+                e2 = y2 - (o2 + (k + 0.5) * cell)
+                yc = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) + 1e-12
+                d2 = np.inf
+                for m in range(cand_start[c], cand_start[c + 1]):
+                    lb = cand_key[m] - yc
+                    if lb > 0.0 and lb * lb >= d2:
+                        break
+                    e0 = y0 - cand_pts[m, 0]
+                    e1 = y1 - cand_pts[m, 1]
+                    e2 = y2 - cand_pts[m, 2]
+                    dm = e0 * e0 + e1 * e1 + e2 * e2
+                    if dm < d2:
+                        d2 = dm
+                        s = cand_sample[m]
+                if not (normals[s, 0] * n0 + normals[s, 1] * n1 + normals[s, 2] * n2 > NORMAL_COS):
+                    # the nearest candidate of the normal's bin, exact when within the cell's reach
+                    reach = cell_dist[c] + half_diag
+                    reach2 = reach * reach
+                    for m in range(cand_start[c], cand_start[c + 1]):
+                        lb = cand_key[m] - yc
+                        if lb > 0.0 and (lb * lb >= bin_d2 or lb > reach):
+                            break
+                        if cand_bin[m] != qb:
+                            continue
+                        e0 = y0 - cand_pts[m, 0]
+                        e1 = y1 - cand_pts[m, 1]
+                        e2 = y2 - cand_pts[m, 2]
+                        dm = e0 * e0 + e1 * e1 + e2 * e2
+                        if dm < bin_d2:
+                            bin_d2 = dm
+                            bin_s = cand_sample[m]
+                    if bin_d2 > reach2:
+                        bin_s = -1
+            elif listed:
                 d2 = np.inf
                 for m in range(cand_start[c], cand_start[c + 1]):
                     sm = cand_idx[m]
@@ -286,7 +378,8 @@ def correspond_many(y, ny, exact, samples, normals, grid, kd):  # type: ignore[n
     idx = np.empty(p, dtype=np.int64)
     stack_n = np.empty(_STACK, dtype=np.int64)
     stack_b = np.empty(_STACK)
-    _correspond_block(y, ny, exact, np.inf, samples, normals, grid, kd, stack_n, stack_b, r, d, idx)
+    cand = (np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    _correspond_block(y, ny, exact, np.inf, samples, normals, grid, kd, cand, stack_n, stack_b, r, d, idx)
     return r, d, idx
 
 
@@ -300,7 +393,7 @@ def _pose_points(rot, t, s, pts, nrm, y, ny):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, nogil=True)
-def correspond_posed(poses, scales, pts, nrm, exact, max_d, samples, normals, grid, kd):  # type: ignore[no-untyped-def]
+def correspond_posed(poses, scales, pts, nrm, exact, max_d, samples, normals, grid, kd, cand):  # type: ignore[no-untyped-def]
     """Correspondences of (P, 3) frame points under (H, 4, 4) object_from_frame poses / (H,) scales: r, d (H, P);
     distances that would exceed max_d may come back as inf (see `_correspond_block`)."""
     h = poses.shape[0]
@@ -314,7 +407,7 @@ def correspond_posed(poses, scales, pts, nrm, exact, max_d, samples, normals, gr
     stack_b = np.empty(_STACK)
     for a in range(h):
         _pose_points(poses[a, :3, :3], poses[a, :3, 3], scales[a], pts, nrm, y, ny)
-        _correspond_block(y, ny, exact, max_d, samples, normals, grid, kd, stack_n, stack_b, r[a], d[a], sel)
+        _correspond_block(y, ny, exact, max_d, samples, normals, grid, kd, cand, stack_n, stack_b, r[a], d[a], sel)
     return r, d
 
 
@@ -472,6 +565,7 @@ def icp_run(  # type: ignore[no-untyped-def]
     normals,
     grid,
     kd,
+    cand,
 ):
     """Trimmed point-to-plane ICP iterations of every hypothesis, in place.
 
@@ -480,7 +574,7 @@ def icp_run(  # type: ignore[no-untyped-def]
     frame points / normals, thr (P,) inlier distances; gates (I,) correspondence gate per iteration, exact_iter
     (I,) exact (KD-tree) correspondences per iteration; iterations run while it < it_stop. A hypothesis whose
     gate is at its floor (gate_end) and that moved less than `converge` (metres, rotation at one diameter)
-    jumps to iteration `jump_to` (the exact stage) when that lies ahead, else stops.
+    jumps to iteration `jump_to` (the exact stage) when that lies ahead, else stops. cand: `sorted_candidates`.
     """
     h = poses.shape[0]
     p = pts.shape[0]
@@ -512,7 +606,7 @@ def icp_run(  # type: ignore[no-untyped-def]
             s = scales[hh]
             # correspondences
             _pose_points(rot, t, s, pts, nrm, y, ny)
-            _correspond_block(y, ny, exact, gate, samples, normals, grid, kd, stack_n, stack_b, r, d, sel)
+            _correspond_block(y, ny, exact, gate, samples, normals, grid, kd, cand, stack_n, stack_b, r, d, sel)
             cnt = 0
             inl = 0
             for q in range(p):

@@ -17,7 +17,7 @@ from normpos_grasp.camera.model import Camera
 from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.transforms import invert_pose, look_at
 from normpos_grasp.templates import kernels
-from normpos_grasp.templates.icp import correspond
+from normpos_grasp.templates.icp import candidates, correspond
 from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
@@ -94,6 +94,7 @@ def score_bounds(
         prep.normals,
         prep.grid,
         prep.kd,
+        candidates(prep),
     )
     tol = float(np.median(thr)) if thr_median is None else thr_median
     nb = neighbours if neighbours is not None else consistency_neighbours(pts)
