@@ -452,27 +452,33 @@ class CollisionWorld:
         bc = np.stack([b[0][:3, 3] for b in boxes])
         br = np.stack([b[0][:3, :3] for b in boxes])
         bh = np.stack([b[1] for b in boxes])
-        blo = np.stack([e.lo for e in els])
-        bhi = np.stack([e.hi for e in els])
         openings = np.broadcast_to(np.asarray(opening_m, dtype=np.float64), (n,))
+        box_from_world = np.swapaxes(br, 1, 2)[None]  # (1, B, 3, 3)
+        aligned = bool(np.all(br == np.eye(3)))
         for s in self.tool.shapes:
             if s.kind != "box":
                 continue
-            local = np.broadcast_to(np.asarray(s.tcp_from_shape, dtype=np.float64), (n, 4, 4)).copy()
+            rows = np.flatnonzero(~hits)  # poses already hit need no further shape
+            if len(rows) == 0:
+                break
+            local = np.broadcast_to(np.asarray(s.tcp_from_shape, dtype=np.float64), (len(rows), 4, 4)).copy()
             if s.moves:
-                local[:, 0, 3] += s.moves * (openings / 2.0 + s.size[0] / 2.0)
-            world = poses @ local
+                local[:, 0, 3] += s.moves * (openings[rows] / 2.0 + s.size[0] / 2.0)
+            world = poses[rows] @ local
             half = np.asarray(s.size, dtype=np.float64) / 2.0
-            # bounding sphere vs each box's AABB first: the exact test only runs on pairs that may touch
-            c = world[:, None, :3, 3]
-            gap = np.maximum(blo[None] - c, 0.0) + np.maximum(c - bhi[None], 0.0)
-            near = np.einsum("nbi,nbi->nb", gap, gap) <= float(half @ half)
-            near &= ~hits[:, None]
-            ii, bb = np.nonzero(near)
+            # the separating-axis tests along each cell box's own axes first (the tool box's extent there against
+            # the centres' distance, 1 nm of slack for rounding): the full test only runs on pairs they cannot part
+            if aligned:  # boxes along the world axes (the usual cell): the tool box's world AABB
+                d = world[:, None, :3, 3] - bc[None]
+                ext = (np.abs(world[:, :3, :3]) * half).sum(axis=2)[:, None]
+            else:
+                d = (box_from_world @ (world[:, None, :3, 3] - bc[None])[..., None])[..., 0]  # (R, B, 3) box frames
+                ext = (np.abs(box_from_world @ world[:, None, :3, :3]) * half).sum(axis=3)
+            ii, bb = np.nonzero(np.all(np.abs(d) <= bh[None] + ext + 1e-9, axis=2))
             if len(ii) == 0:
                 continue
             over = obb_overlap(world[ii, :3, 3], world[ii, :3, :3], half[None], bc[bb], br[bb], bh[bb])
-            hits[ii[over]] = True
+            hits[rows[ii[over]]] = True
         return hits
 
     def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:
