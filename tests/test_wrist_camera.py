@@ -22,6 +22,7 @@ from normpos_grasp.kinematics.robot import Robot
 from normpos_grasp.loop import run_cell_loop, wrist_capture
 from normpos_grasp.planning.capture import plan_capture_move
 from normpos_grasp.records.plan import PickPlan
+from normpos_grasp.templates.library import load_library
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "cells" / "ur5e_wrist_camera.yaml"
 CELL = load_cell(EXAMPLE)
@@ -175,6 +176,28 @@ def test_the_capture_move_keeps_the_camera_housing_clear() -> None:
     assert np.allclose(move.capture_q, q) and move.trajectory.duration_s > 0
     with pytest.raises(InputError, match="does not exist"):
         plan_capture_move(CELL, CELL.home_q, 2)
+
+
+class _NothingThere:
+    def segment(self, frame: RGBDFrame) -> list[Any]:
+        return []
+
+
+def test_loop_tries_the_next_capture_pose_before_it_gives_up() -> None:
+    """An empty view at capture pose 0 moves the (dry-run) arm to pose 1, captures and plans again from there."""
+    source = _StillCamera()
+    captured = []
+    capture = source.capture
+    source.capture = lambda: captured.append(1) or capture()  # type: ignore[method-assign]
+    library = list(load_library(EXAMPLE.parents[1] / "templates" / "cube_40mm").templates)
+    records = run_cell_loop(CELL, source, _NothingThere(), library, None, max_picks=1)
+    assert CELL.wrist_camera is not None
+    assert len(captured) == 2 and [r.status for r in records] == ["no_feasible_grasp"]
+    record = records[0]
+    assert record.start_q is not None and np.allclose(record.start_q, CELL.wrist_camera.capture_q[1])
+    assert record.captured is not None and record.captured.camera.world_from_camera is not None
+    expected = CELL.wrist_camera.world_from_camera(CELL.world_from_base, "ur5e", CELL.wrist_camera.capture_q[1])
+    assert np.allclose(record.captured.camera.world_from_camera, expected)
 
 
 def test_loop_refuses_overlap_with_a_wrist_camera() -> None:
