@@ -11,11 +11,17 @@ import numpy as np
 import trimesh
 
 from normpos_grasp.cell import load_cell
+from normpos_grasp.execution.plan import check_plan, parse_plan
+from normpos_grasp.execution.safety import SafetyLimits
+from normpos_grasp.geometry import make_pose, rotation_from_rotvec
 from normpos_grasp.kinematics.arm import ArmModel
+from normpos_grasp.planning import plan_pick
 from normpos_grasp.planning.branches import HALF_TURN, half_turn_symmetric, place_poses, quickest_grasp
+from normpos_grasp.planning.plan import PlanOptions
 from normpos_grasp.planning.timing import _ruckig, joint_caps, rest_to_rest_s
 from normpos_grasp.records.grasp import GraspCandidate
-from normpos_grasp.records.plan import Evaluation
+from normpos_grasp.records.plan import Evaluation, PickPlan
+from normpos_grasp.records.template import Template, TemplateFit
 from normpos_grasp.records.tool import ToolShape
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cells"
@@ -107,3 +113,35 @@ def test_equivalent_place_poses_leave_a_symmetric_part_where_the_planned_pose_do
     centred = np.eye(4)
     centred[2, 3] = 0.02
     assert len(place_poses(pose, centred, cube, False)) == 4  # quarter turns of a cube grasped on its axis
+
+
+def _box_plan(quickest: bool, yaw_deg: float) -> tuple[PickPlan, np.ndarray]:
+    """One box in the example bin, turned `yaw_deg` about z; the plan and the box's vertices where it is released."""
+    part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
+    pose = make_pose(rotation_from_rotvec([0.0, 0.0, np.radians(yaw_deg)]), [0.5, 0.05, 0.025])
+    fit = TemplateFit(part, pose, 1.0, 0.0, 1.0, 1.0, 0.0, True, instance_id=1)
+    plan = plan_pick([fit], [], CELL, PlanOptions(quickest_branches=quickest))
+    assert plan.status == "ok" and plan.chosen is not None and plan.trajectory is not None
+    release = next(w for w in plan.waypoints if w.name == "place").world_from_tcp
+    placed = release @ np.linalg.inv(plan.chosen.candidate.world_from_tcp) @ pose
+    verts = np.asarray(part.mesh.vertices) @ placed[:3, :3].T + placed[:3, 3]
+    return plan, np.sort(np.round(verts, 5), axis=0)
+
+
+def test_plan_turns_the_wrist_the_short_way_and_places_the_part_the_same() -> None:
+    nearest, placed_nearest = _box_plan(False, 0.0)  # the evaluation's branch turns joint 6 to 2.97 rad
+    quick, placed_quick = _box_plan(True, 0.0)
+    assert nearest.chosen is not None and quick.chosen is not None
+    assert quick.chosen.candidate.grasp_id == nearest.chosen.candidate.grasp_id  # the same grasp, the wrist turned
+    assert quick.chosen.q is not None and quick.chosen.world_from_tcp is not None
+    flange_from_tcp = np.asarray(CELL.tool.flange_from_tcp)
+    cell_arm = ArmModel.from_name(CELL.robot_model, CELL.world_from_base)
+    np.testing.assert_allclose(cell_arm.fk(quick.chosen.q) @ flange_from_tcp, quick.chosen.world_from_tcp, atol=1e-9)
+    np.testing.assert_allclose(quick.chosen.candidate.world_from_tcp, quick.chosen.world_from_tcp[2], atol=1e-12)
+    assert quick.chosen in quick.evaluations
+    home = np.asarray(CELL.home_q)
+    assert np.abs(quick.waypoints[1].q - home).max() < np.abs(nearest.waypoints[1].q - home).max()
+    np.testing.assert_allclose(placed_quick, placed_nearest, atol=2e-4)  # the box lands where it did
+    assert quick.trajectory is not None and nearest.trajectory is not None
+    assert quick.trajectory.duration_s < nearest.trajectory.duration_s - 1.0  # 1.8 s of wrist turn -> 0.5 s
+    check_plan(parse_plan(quick.to_json()), SafetyLimits.from_cell(CELL))
