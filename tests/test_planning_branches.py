@@ -6,11 +6,15 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 import trimesh
 
+import normpos_grasp.planning.plan as plan_module
 from normpos_grasp.cell import load_cell
+from normpos_grasp.errors import PlanningError
 from normpos_grasp.execution.plan import check_plan, parse_plan
 from normpos_grasp.execution.safety import SafetyLimits
 from normpos_grasp.geometry import make_pose, rotation_from_rotvec
@@ -145,3 +149,20 @@ def test_plan_turns_the_wrist_the_short_way_and_places_the_part_the_same() -> No
     assert quick.trajectory is not None and nearest.trajectory is not None
     assert quick.trajectory.duration_s < nearest.trajectory.duration_s - 1.0  # 1.8 s of wrist turn -> 0.5 s
     check_plan(parse_plan(quick.to_json()), SafetyLimits.from_cell(CELL))
+
+
+def test_a_grasp_without_a_path_once_turned_is_planned_with_its_own_angles(monkeypatch: pytest.MonkeyPatch) -> None:
+    build = plan_module._build_path
+
+    def refuse_turned(ev: Evaluation, *args: Any) -> Any:
+        assert ev.q is not None
+        if ev.q[0, 5] < 1.0:  # the turned wrist (the box's own grasp turns joint 6 to 2.97 rad)
+            raise PlanningError("no path (test)")
+        return build(ev, *args)
+
+    monkeypatch.setattr(plan_module, "_build_path", refuse_turned)
+    plan, _ = _box_plan(True, 0.0)
+    nearest, _ = _box_plan(False, 0.0)
+    assert plan.chosen is not None and plan.chosen.q is not None and nearest.chosen is not None
+    np.testing.assert_allclose(plan.chosen.q, nearest.chosen.q)  # type: ignore[arg-type]
+    assert plan.chosen in plan.evaluations

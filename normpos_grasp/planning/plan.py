@@ -257,9 +257,17 @@ def plan_from_candidates(
                     ev, arm, cell.tool.flange_from_tcp, home, caps, turn_ok, lambda q: world.check_arm(q) is None
                 )
             try:
-                waypoints, pieces, place_name = _build_path(
-                    path_ev, targets[ev.candidate.target], world, arm, cell, home, opts
-                )
+                try:
+                    waypoints, pieces, place_name = _build_path(
+                        path_ev, targets[ev.candidate.target], world, arm, cell, home, opts
+                    )
+                except PlanningError:
+                    if path_ev is ev:
+                        raise
+                    path_ev = ev  # no path with joint 6 turned: the evaluation's own angles
+                    waypoints, pieces, place_name = _build_path(
+                        ev, targets[ev.candidate.target], world, arm, cell, home, opts
+                    )
             except PlanningError as exc:
                 reason = getattr(exc, "reason", "path")
                 logger.debug("grasp %s rejected while building the path: %s", ev.candidate.grasp_id, exc)
