@@ -153,6 +153,26 @@ def test_a_point_seen_from_two_capture_poses_lands_on_the_same_world_point() -> 
     assert np.linalg.norm(views[0][:3, 3] - views[1][:3, 3]) > 0.05  # two different views of the point
 
 
+def test_with_a_driver_the_frame_carries_the_pose_the_arm_reports() -> None:
+    """The capture move runs on the simulated driver (10x time); the frame's pose is FK of the joints it reports."""
+    from normpos_grasp.execution import DriverOptions, SimDriver
+
+    limits = SafetyLimits.from_cell(CELL)
+    driver = SimDriver(limits, q_home=np.asarray(CELL.home_q), time_scale=10.0, options=DriverOptions(watchdog_s=1.0))
+    driver.connect()
+    try:
+        frame = wrist_capture(CELL, _StillCamera(), driver, np.asarray(CELL.home_q), limits, 0)
+        q = driver.state().q
+    finally:
+        driver.disconnect()
+        driver.shutdown()
+    assert CELL.wrist_camera is not None
+    assert np.max(np.abs(q - CELL.wrist_camera.capture_q[0])) < 1e-3
+    expected = CELL.world_from_base @ Robot.load("ur5e").fk(q) @ CELL.wrist_camera.flange_from_camera
+    assert frame.camera.world_from_camera is not None
+    assert np.allclose(frame.camera.world_from_camera, expected, atol=1e-9)
+
+
 # ------------------------------------------------------------------------------------- the housing in the planner
 
 
