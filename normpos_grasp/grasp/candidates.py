@@ -177,13 +177,21 @@ def object_grasps(
 @lru_cache(maxsize=256)
 def _object_grasps_cached(
     template: Template, kinds: tuple[str, ...], options: CandidateOptions
-) -> tuple[list[tuple[GraspAnnotation, str, str, FloatArray]], FloatArray]:
-    """`object_grasps` and their object_from_tcp stacked (G, 4, 4), once per template (by identity), tool kinds
-    and options (read-only: callers must not modify them)."""
+) -> tuple[tuple[tuple[str, str, str, float, float, float, float, float], ...], FloatArray]:
+    """`object_grasps` as the candidate fields that do not depend on the pose (id, source, scheme, opening_m,
+    approach_m, retreat_m, quality, priority) and their object_from_tcp stacked (G, 4, 4), once per template (by
+    identity), tool kinds and options (read-only: callers must not modify them)."""
     grasps = object_grasps(template, kinds, options)
     poses = np.stack([pose for *_, pose in grasps]) if grasps else np.zeros((0, 4, 4))
     poses.setflags(write=False)
-    return grasps, poses
+    fields = []
+    for g, source, gid, _ in grasps:
+        synthesized = source == "synthesized"
+        quality = min(max(float(g.priority), 0.0), 1.0) if synthesized else 1.0
+        priority = 0.0 if synthesized else float(g.priority)
+        opening, approach, retreat = float(g.opening_m), float(g.approach_m), float(g.retreat_m)
+        fields.append((gid, source, g.scheme, opening, approach, retreat, quality, priority))
+    return tuple(fields), poses
 
 
 def _symmetry_axes(template: Template) -> list[tuple[FloatArray, FloatArray]]:
@@ -459,30 +467,19 @@ def candidates_for_object(
     if closing_dirs is not None and len(axes_world) == 1 and tool_kind == "parallel":
         aligned = _align_closing(world_poses, axes_world[0], np.asarray(closing_dirs, dtype=np.float64))
     name = template.name
-    for k, (g, source, gid, _) in enumerate(grasps):
-        synthesized = source == "synthesized"
-        quality = min(max(float(g.priority), 0.0), 1.0) if synthesized else 1.0
-        fields = (
-            target,
-            name,
-            gid,
-            source,
-            g.scheme,
-            world_poses[k],
-            float(g.opening_m),
-            float(g.approach_m),
-            float(g.retreat_m),
-            quality,
-            0.0 if synthesized else float(g.priority),
-        )
-        out.append(GraspCandidate(*fields))
-        if has_snap[k]:
-            out.append(GraspCandidate(target, name, f"{gid}@down", source, g.scheme, snapped[k], *fields[6:]))
-        if aligned is not None:
-            for m in np.flatnonzero(aligned[1][k]):
-                out.append(
-                    GraspCandidate(target, name, f"{gid}@align{m}", source, g.scheme, aligned[0][k, m], *fields[6:])
-                )
+    turned: dict[int, list[int]] = {}  # grasp index -> the wall directions it is turned to close along
+    turned_poses = np.zeros((0, 0, 4, 4))
+    if aligned is not None:
+        turned_poses = aligned[0]
+        for k, m in zip(*np.nonzero(aligned[1]), strict=True):
+            turned.setdefault(int(k), []).append(int(m))
+    snap = has_snap.tolist()
+    for k, (gid, source, scheme, *rest) in enumerate(grasps):
+        out.append(GraspCandidate(target, name, gid, source, scheme, world_poses[k], *rest))
+        if snap[k]:
+            out.append(GraspCandidate(target, name, f"{gid}@down", source, scheme, snapped[k], *rest))
+        for m in turned.get(k, ()):
+            out.append(GraspCandidate(target, name, f"{gid}@align{m}", source, scheme, turned_poses[k, m], *rest))
     if opts.level_within_rad > 0:
         out.extend(level_candidates(out, opts.level_within_rad))
     if opts.vertical_prism and tool_kind == "parallel" and opts.synthesize != "never":
@@ -503,13 +500,17 @@ def level_candidates(candidates: list[GraspCandidate], within_rad: float) -> lis
     plate lying on the floor) then meets level fingertips, which clear the floor at the same depth everywhere; the
     grip mechanics judge the pads against the slightly tilted faces."""
     out: list[GraspCandidate] = []
+    if not candidates:
+        return out
     down = np.array([0.0, 0.0, -1.0])
     lo = np.cos(within_rad)
     hi = np.cos(np.deg2rad(0.5))
-    for c in candidates:
+    cos_all = np.stack([c.world_from_tcp[:3, 2] for c in candidates]) @ down
+    for j in np.flatnonzero((cos_all >= lo) & (cos_all < hi)):
+        c = candidates[int(j)]
         pose = c.world_from_tcp
         cos_a = float(pose[:3, 2] @ down)
-        if not lo <= cos_a < hi:
+        if not lo <= cos_a < hi:  # the same test on the same product (the batch above only preselects)
             continue
         axis = np.cross(pose[:3, 2], down)
         axis /= np.linalg.norm(axis)
