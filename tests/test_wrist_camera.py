@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 from normpos_grasp.camera.model import Camera, RGBDFrame
-from normpos_grasp.cell import cell_from_dict, load_cell, resolve_cell
+from normpos_grasp.cell import BoxSpec, cell_from_dict, load_cell, resolve_cell
 from normpos_grasp.cell.wrist_camera import CAMERA_SHAPE
 from normpos_grasp.cli.main import main
 from normpos_grasp.errors import CellConfigError, InputError, PlanningError
@@ -176,24 +177,29 @@ def test_with_a_driver_the_frame_carries_the_pose_the_arm_reports() -> None:
 # ------------------------------------------------------------------------------------- the housing in the planner
 
 
-def test_the_capture_move_keeps_the_camera_housing_clear() -> None:
-    """A post just where the housing is at capture pose 0 (clear of the gripper and the arm): the move there is
-    refused; the same cell with the housing taken off the tool plans it."""
+def test_the_camera_housing_is_in_the_collision_world() -> None:
+    """A post just where the housing is at capture pose 0 (clear of the gripper and the arm): the cell file is
+    refused naming the capture pose and the post; a cell holding it anyway gets no capture move; with the housing
+    taken off the tool the same move plans."""
     assert CELL.wrist_camera is not None
     q = CELL.wrist_camera.capture_q[0]
     body = next(s for s in CELL.tool.shapes if s.name == CAMERA_SHAPE)
     flange = CELL.world_from_base @ Robot.load("ur5e").fk(q)
     centre = (flange @ CELL.tool.flange_from_tcp @ body.tcp_from_shape)[:3, 3]
+    pose = np.eye(4)
+    pose[:3, 3] = centre + [0.0, 0.0, 0.1]
+    size = [0.02, 0.02, 0.16]
     data = _data()
-    data["fixtures"] = [
-        {"name": "post", "pose": {"xyz": [centre[0], centre[1], centre[2] + 0.1]}, "size": [0.02, 0.02, 0.16]}
-    ]
-    blocked = _load(data)
+    data["fixtures"] = [{"name": "post", "pose": {"xyz": pose[:3, 3].tolist()}, "size": size}]
+    with pytest.raises(CellConfigError, match="camera housing included.*touches post") as info:
+        _load(data)
+    assert info.value.path == "camera.capture[0]"
+    blocked = replace(CELL, static_boxes=(*CELL.static_boxes, BoxSpec("post", pose, np.array(size))))
     with pytest.raises(PlanningError, match=r"camera.capture\[0\].*goal configuration is in collision"):
         plan_capture_move(blocked, blocked.home_q, 0)
-    bare = type(blocked)(**{**blocked.__dict__, "tool": type(blocked.tool)(
-        **{**blocked.tool.__dict__, "shapes": tuple(s for s in blocked.tool.shapes if s.name != CAMERA_SHAPE)}
-    )})  # fmt: skip
+    bare = replace(
+        blocked, tool=replace(blocked.tool, shapes=tuple(s for s in CELL.tool.shapes if s.name != CAMERA_SHAPE))
+    )
     move = plan_capture_move(bare, bare.home_q, 0)
     assert np.allclose(move.capture_q, q) and move.trajectory.duration_s > 0
     with pytest.raises(InputError, match="does not exist"):

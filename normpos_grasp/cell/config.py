@@ -685,7 +685,8 @@ def _wrist_camera(
 
     flange_from_camera: the camera JSON `calibrate hand-eye --mode eye-in-hand` wrote (a path, relative to the cell
     file) or a pose. capture: a list of joint positions (rad), each within the joint limits, with its TCP inside
-    motion.workspace and its camera above the lowest surface parts rest on (`floor`, m)."""
+    motion.workspace and its camera above the lowest surface parts rest on (`floor`, m); the caller checks that
+    the arm and the tool with the housing are clear of the static boxes there (`WristCamera.capture_contacts`)."""
     d = _mapping(v, "camera", _WRIST_CAMERA_KEYS)
     raw = _req(d, "flange_from_camera", "camera")
     source = None
@@ -790,6 +791,10 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         floor = _camera_floor(floor_z, boxes, bin_spec)
         wrist = _wrist_camera(data["camera"], base_dir, model, world_from_base, tool.flange_from_tcp, limits, floor)
         tool = wrist.mounted_on(tool)
+        statics = [(b.name, b.world_from_box, b.size) for b in boxes]
+        for i, contact in enumerate(wrist.capture_contacts(model, world_from_base, tool, statics)):
+            if contact:
+                raise _err(f"camera.capture[{i}]", f"at this pose {contact}: teach a capture pose clear of the cell")
         if "watch" in data:
             raise _err("watch", "the zone watch and drift check need a fixed camera; this cell's is on the wrist")
     elif "camera" in data:

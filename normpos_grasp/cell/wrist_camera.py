@@ -8,12 +8,15 @@ DH model (the planner's arm model) and flange_from_camera from `calibrate hand-e
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from normpos_grasp.collision.world import CollisionWorld
 from normpos_grasp.errors import InputError
+from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.kinematics.ur_params import dh_forward_kinematics, ur_params
 from normpos_grasp.records.tool import ToolModel, ToolShape
 from normpos_grasp.typing import ArrayLike, FloatArray
@@ -63,3 +66,33 @@ class WristCamera:
         check, zone-watch silhouette) then covers the camera and its cable clearance."""
         kept = tuple(s for s in tool.shapes if s.name != CAMERA_SHAPE)
         return replace(tool, shapes=(*kept, self.collision_shape(tool.flange_from_tcp)))
+
+    def capture_contacts(
+        self,
+        robot: str,
+        world_from_base: ArrayLike,
+        tool: ToolModel,
+        boxes: Iterable[tuple[str, FloatArray, FloatArray]],
+    ) -> list[str]:
+        """For each capture pose, what the arm or `tool` (the housing mounted) touches among static `boxes` (name,
+        world_from_box (4, 4), size (3,) m), in words; '' where clear."""
+        arm = ArmModel.from_name(robot, world_from_base)
+        world = CollisionWorld()
+        for name, pose, size in boxes:
+            world.add_box(name, pose, size, "cell")
+        world.set_arm(arm)
+        world.set_tool(tool)
+        world.update()
+        out = []
+        for q in np.asarray(self.capture_q, dtype=np.float64):
+            hit = world.check_config(q, 0.0)
+            if hit is None:
+                out.append("")
+            elif hit.part == "tool":
+                names = world.which(arm.fk(q) @ tool.flange_from_tcp)
+                out.append(f"the tool (camera housing included) touches {', '.join(names) or 'the cell'}")
+            elif hit.part == "self":
+                out.append(f"the arm touches itself or its tool ({hit.name})")
+            else:
+                out.append(f"the arm's {hit.name or 'links'} touch the cell")
+        return out
