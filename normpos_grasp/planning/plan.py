@@ -388,15 +388,14 @@ def _line(
     q, exists, _ = arm.ik_reasons(poses @ tcp_from_flange)
     if not exists[:, branch].all():
         raise _PathRejected("straight line leaves the IK branch", "path_ik")
-    qs = q[:, branch].copy()
+    raw = q[:, branch]
     two_pi = 2 * np.pi
-    prev = q_start
-    for k in range(len(qs)):
-        qs[k] = qs[k] + two_pi * np.round((prev - qs[k]) / two_pi)
-        if np.abs(qs[k] - prev).max() > opts.max_joint_jump_rad:
-            raise _PathRejected("straight line passes a singularity (joint jump)", "path_singularity")
-        prev = qs[k]
-    if not all(arm.within_limits(x) for x in qs):
+    # each sample by whole turns next to the one before (the first next to q_start): the turns add up along the line
+    turns = np.cumsum(np.round((np.vstack([q_start, raw[:-1]]) - raw) / two_pi), axis=0)
+    qs = raw + two_pi * turns
+    if np.abs(np.diff(np.vstack([q_start, qs]), axis=0)).max() > opts.max_joint_jump_rad:
+        raise _PathRejected("straight line passes a singularity (joint jump)", "path_singularity")
+    if np.any(qs < arm.lower - 1e-9) or np.any(qs > arm.upper + 1e-9):
         raise _PathRejected("straight line leaves the joint limits", "path_joint_limits")
     return qs, poses[:, :3, 3]
 
