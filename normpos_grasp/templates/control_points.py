@@ -16,6 +16,7 @@ import numpy as np
 from normpos_grasp.errors import InputError
 from normpos_grasp.geometry.kabsch import kabsch
 from normpos_grasp.records.template import Template
+from normpos_grasp.templates import kernels
 from normpos_grasp.templates.features import batched_kabsch
 from normpos_grasp.typing import ArrayLike, FloatArray
 
@@ -88,10 +89,7 @@ def control_point_hypotheses(
     ti = rng.integers(0, len(cps), size=(n_samples, 3))
     a = det[di]
     b = cps[ti]
-    ea = np.linalg.norm(a[:, [0, 1, 2]] - a[:, [1, 2, 0]], axis=-1)
-    eb = np.linalg.norm(b[:, [0, 1, 2]] - b[:, [1, 2, 0]], axis=-1)
-    ok = np.all(np.abs(ea - eb) < 0.05 * diameter + 0.003, axis=1) & np.all(ea > 0.2 * diameter, axis=1)
-    if not np.any(ok):
+    ok = np.flatnonzero(kernels.consistent_triples(a, b, 0.05 * diameter + 0.003, 0.2 * diameter, di, False))[:24]
+    if len(ok) == 0:
         return np.zeros((0, 4, 4))
-    poses = batched_kabsch(a[ok], b[ok])
-    return poses[:24]
+    return batched_kabsch(a[ok], b[ok])

@@ -149,10 +149,7 @@ def ransac_hypotheses(
     mi = cand[tri, pick]
     a = meas_pts[tri]
     b = model_pts[mi]
-    ea = np.linalg.norm(a[:, [0, 1, 2]] - a[:, [1, 2, 0]], axis=-1)
-    eb = np.linalg.norm(b[:, [0, 1, 2]] - b[:, [1, 2, 0]], axis=-1)
-    ok = np.all(np.abs(ea - eb) < tol, axis=1) & np.all(ea > min_edge, axis=1)
-    ok &= (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
+    ok = kernels.consistent_triples(a, b, float(tol), float(min_edge), tri, True)
     if not np.any(ok):
         return np.zeros((0, 4, 4))
     return batched_kabsch(a[ok], b[ok])

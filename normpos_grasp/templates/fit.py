@@ -638,9 +638,8 @@ def _pca_hypotheses(prep: PreparedTemplate, meas: _Measured) -> FloatArray:
     view = view / max(float(np.linalg.norm(view)), 1e-12)
     rots = np.einsum("ij,njk,kl->nil", prep.axes, np.array(_SIGNED_PERMS), am.T)  # object_from_frame rotations
     v_obj = rots @ view  # (24, 3) viewing direction in the object frame
-    vis = (prep.normals @ v_obj.T < -0.1).astype(np.float64)  # (S, 24) samples facing the camera
-    cnt = vis.sum(axis=0)
-    cv = np.where(cnt[:, None] > 0, (vis.T @ prep.samples) / np.maximum(cnt, 1.0)[:, None], prep.centroid)
+    # centre of the samples facing the camera in each assignment
+    cv = kernels.facing_centres(prep.samples, prep.normals, np.ascontiguousarray(v_obj), prep.centroid, -0.1)
     out = np.tile(np.eye(4), (len(rots), 1, 1))
     out[:, :3, :3] = rots
     out[:, :3, 3] = cv - rots @ c
@@ -685,11 +684,16 @@ def _ransac(prep: PreparedTemplate, meas: _Measured, opts: FitOptions, rng: np.r
     if len(poses) == 0:
         return poses
     # quick score on the distance grid: share of points near the surface
-    sub = mp[_subsample(len(mp), 60, rng)]
-    y = np.einsum("hij,pj->hpi", poses[:, :3, :3], sub) + poses[:, None, :3, 3]
-    idx, inside = prep.grid_lookup(y.reshape(-1, 3))
-    d = np.linalg.norm(y.reshape(-1, 3) - prep.samples[idx], axis=1)
-    ok = ((d < 2.0 * tol) & (inside > 0)).reshape(len(poses), -1).mean(axis=1)
+    sub = np.ascontiguousarray(mp[_subsample(len(mp), 60, rng)])
+    ok = kernels.near_surface_share(
+        np.ascontiguousarray(poses),
+        sub,
+        prep.samples,
+        prep.grid_origin,
+        float(prep.grid_cell),
+        prep.grid_index,
+        2.0 * tol,
+    )
     top = np.argsort(-ok)[:16]
     return poses[top]
 

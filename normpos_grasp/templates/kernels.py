@@ -1212,3 +1212,86 @@ def depth_scores(samples, normals, cfo, scale, spacing, fx, fy, cx, cy, depth, t
     n_sup, n_den, n_vio, n_mis, n_ng, n_occ = depth_evidence(pv, nv, uv, depth, tol, rad)
     _, n_exp, n_front = silhouette_evidence(pv, uv, depth, tol, rad, front_lim)
     return pv.shape[0], n_sup, n_den, n_vio, n_mis, n_ng, n_occ, n_exp, n_front
+
+
+@njit(cache=True, nogil=True)
+def consistent_triples(a, b, tol, min_edge, ia, distinct):  # type: ignore[no-untyped-def]
+    """(T,) mask of point triples a, b (T, 3, 3) whose three edge lengths agree within tol, whose shortest edge
+    of a exceeds min_edge and, with `distinct`, whose index triple ia (T, 3) has no repeat (as
+    `features.ransac_hypotheses` and `control_points.control_point_hypotheses`)."""
+    n = a.shape[0]
+    ok = np.zeros(n, dtype=np.bool_)
+    for t in range(n):
+        if distinct and (ia[t, 0] == ia[t, 1] or ia[t, 1] == ia[t, 2] or ia[t, 0] == ia[t, 2]):
+            continue
+        good = True
+        for e in range(3):
+            f = (e + 1) % 3
+            da = math.sqrt(
+                (a[t, e, 0] - a[t, f, 0]) ** 2 + (a[t, e, 1] - a[t, f, 1]) ** 2 + (a[t, e, 2] - a[t, f, 2]) ** 2
+            )
+            db = math.sqrt(
+                (b[t, e, 0] - b[t, f, 0]) ** 2 + (b[t, e, 1] - b[t, f, 1]) ** 2 + (b[t, e, 2] - b[t, f, 2]) ** 2
+            )
+            if not (abs(da - db) < tol and da > min_edge):
+                good = False
+                break
+        ok[t] = good
+    return ok
+
+
+@njit(cache=True, nogil=True)
+def near_surface_share(poses, pts, samples, grid_origin, grid_cell, grid_index, lim):  # type: ignore[no-untyped-def]
+    """(H,) share of points pts (P, 3) that (H, 4, 4) poses put inside the distance grid within lim metres of
+    the grid cell's nearest sample (the RANSAC hypotheses' quick score, as `prepared.grid_lookup`)."""
+    h = poses.shape[0]
+    p = pts.shape[0]
+    g = grid_index.shape[0]
+    out = np.zeros(h)
+    for a in range(h):
+        cnt = 0
+        for q in range(p):
+            x0, x1, x2 = pts[q, 0], pts[q, 1], pts[q, 2]
+            y0 = poses[a, 0, 0] * x0 + poses[a, 0, 1] * x1 + poses[a, 0, 2] * x2 + poses[a, 0, 3]
+            y1 = poses[a, 1, 0] * x0 + poses[a, 1, 1] * x1 + poses[a, 1, 2] * x2 + poses[a, 1, 3]
+            y2 = poses[a, 2, 0] * x0 + poses[a, 2, 1] * x1 + poses[a, 2, 2] * x2 + poses[a, 2, 3]
+            f0 = math.floor((y0 - grid_origin[0]) / grid_cell)
+            f1 = math.floor((y1 - grid_origin[1]) / grid_cell)
+            f2 = math.floor((y2 - grid_origin[2]) / grid_cell)
+            if not (0 <= f0 < g and 0 <= f1 < g and 0 <= f2 < g):
+                continue
+            s = grid_index[int(f0), int(f1), int(f2)]
+            e0 = y0 - samples[s, 0]
+            e1 = y1 - samples[s, 1]
+            e2 = y2 - samples[s, 2]
+            if math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) < lim:
+                cnt += 1
+        out[a] = cnt / p
+    return out
+
+
+@njit(cache=True, nogil=True)
+def facing_centres(samples, normals, views, centroid, cos_lim):  # type: ignore[no-untyped-def]
+    """(R, 3) mean of the samples (S, 3) whose normals (S, 3) face each viewing direction views (R, 3)
+    (n . v < cos_lim), the centroid (3,) where none does (the PCA hypotheses' visible centres)."""
+    r = views.shape[0]
+    out = np.empty((r, 3))
+    for a in range(r):
+        v0, v1, v2 = views[a, 0], views[a, 1], views[a, 2]
+        cnt = 0
+        s0 = s1 = s2 = 0.0
+        for i in range(samples.shape[0]):
+            if normals[i, 0] * v0 + normals[i, 1] * v1 + normals[i, 2] * v2 < cos_lim:
+                cnt += 1
+                s0 += samples[i, 0]
+                s1 += samples[i, 1]
+                s2 += samples[i, 2]
+        if cnt > 0:
+            out[a, 0] = s0 / cnt
+            out[a, 1] = s1 / cnt
+            out[a, 2] = s2 / cnt
+        else:
+            out[a, 0] = centroid[0]
+            out[a, 1] = centroid[1]
+            out[a, 2] = centroid[2]
+    return out

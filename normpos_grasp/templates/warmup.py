@@ -24,6 +24,7 @@ from normpos_grasp.geometry.transforms import make_pose, random_rotation
 from normpos_grasp.records.template import Symmetry, Template, TemplateFit
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many
 from normpos_grasp.templates.prepared import prepare
+from normpos_grasp.templates.scoring import evaluate
 from normpos_grasp.templates.synthetic import render_views
 
 logger = logging.getLogger(__name__)
@@ -47,6 +48,22 @@ def warm_up() -> tuple[float, list[TemplateFit]]:
     fits = fit_many([normpos], [box], FitOptions(), context, workers=1)
     fits.append(fit_best(normpos, [box], FitOptions()))
     fits.append(fit_best(replace(normpos, label=""), [box, bar], FitOptions(), context))
+    # a distorted camera's pose score (projection in numpy, its depth tests compiled apart from the pinhole one's)
+    distorted = Camera(camera.K, camera.width, camera.height, np.array([0.01, 0.0, 0.0, 0.0, 0.0]))
+    pts = np.asarray(normpos.points, dtype=np.float64)
+    evaluate(
+        prepare(box),
+        np.asarray(np.linalg.inv(fits[0].frame_from_object), dtype=np.float64),
+        1.0,
+        pts,
+        np.asarray(normpos.normals, dtype=np.float64),
+        np.full(len(pts), 0.003),
+        None,
+        np.zeros(3),
+        camera=distorted,
+        depth_m=view.depth_m,
+        camera_from_frame=np.eye(4),
+    )
     seconds = time.perf_counter() - t0
     logger.info("fit kernels ready in %.1f s", seconds)
     return seconds, fits
