@@ -5,6 +5,7 @@ then a fresh capture and plan, never the old plan)."""
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 
@@ -70,18 +71,21 @@ def test_watch_section_is_validated() -> None:
 
 
 class _Scene:
-    """The cell's camera at 320x240, a bin with parts, the arm moving from home towards the bin's far side."""
+    """The cell's camera at 320x240, a bin with parts, the arm moving from home towards the bin's far side; one per
+    seed for the module (`_scene`), its reference frame (arm at home) rendered once."""
 
     def __init__(self, seed: int = 0) -> None:
         self.camera = camera_intrinsics("d435", (320, 240)).with_extrinsics(CELL.world_from_camera)
         self.arm = ArmModel.from_name("ur5e", CELL.world_from_base)
         background, _ = cell_background(CELL, self.camera, 6, seed)
         self.stream = SyntheticCellStream(self.camera, background, self.arm, CELL.tool, SENSOR, seed)
+        self.reference = self.stream.frame(HOME)
 
     def detector(self, spec: WatchSpec = SPEC) -> IntrusionDetector:
+        """A fresh detector (its expected scene learns from the frames it checks)."""
         expected = ExpectedScene(
             self.camera,
-            self.stream.frame(HOME),
+            self.reference,
             lambda z: np.asarray(SENSOR.depth_rms_m(z, self.camera.fx)),
             self.arm,
             CELL.tool,
@@ -98,15 +102,20 @@ class _Scene:
         return HOME + (0.5 - 0.5 * np.cos(np.pi * s)) * MOVE
 
 
+@functools.cache
+def _scene(seed: int) -> _Scene:
+    return _Scene(seed)
+
+
 def _path(s_now: float, ds: float = 0.05) -> np.ndarray:
     history = [(t, _Scene.q(t)) for t in np.arange(max(s_now - 0.2, 0.0), s_now + 1e-9, ds)]
     return joint_path(history, s_now - 0.1)
 
 
 def test_arm_noise_and_held_part_never_trigger() -> None:
-    scene = _Scene(1)
+    scene = _scene(2)
     det = scene.detector()
-    for s in np.linspace(0.0, 1.0, 25):
+    for s in np.linspace(0.0, 1.0, 13):
         # the frame shows the arm where it was a little earlier (latency) and a part hanging below the TCP
         shown_q = _Scene.q(max(s - 0.05, 0.0))
         tcp = scene.arm.fk(shown_q) @ CELL.tool.flange_from_tcp
@@ -117,7 +126,7 @@ def test_arm_noise_and_held_part_never_trigger() -> None:
 
 
 def test_hand_and_person_in_zones_are_caught_and_named() -> None:
-    scene = _Scene(2)
+    scene = _scene(2)
     det = scene.detector()
     check = det.check(scene.stream.frame(_Scene.q(0.6), [hand_box(np.array([0.42, -0.1, 0.12]))]), _path(0.6))
     assert not check.clear and check.intrusions[0].zone == "bin" and check.intrusions[0].label == "hand"
@@ -136,6 +145,44 @@ def test_hand_and_person_in_zones_are_caught_and_named() -> None:
     near_arm = hand_box(tcp + np.array([0.0, -0.2, 0.0]))
     check = scene.detector(band).check(scene.stream.frame(q, [near_arm]), _path(0.6))
     assert not check.clear and check.intrusions[0].zone == "arm_band"
+
+
+def test_arm_explains_its_own_pixels_in_3d_but_not_a_hand_that_overlaps_its_image() -> None:
+    """The image test (depth within the padded capsules' span at the pixel) is only a first cut: a hand 12 cm from
+    every link whose pixels fall inside that span is still new, because its back-projected points lie outside every
+    padded capsule; the arm's own pixels are all explained."""
+    scene = _scene(2)
+    det = scene.detector()
+    ex = det.expected
+    q = _Scene.q(0.0)
+    hand = hand_box(np.array([0.32, 0.14, 0.2]))
+    assert ex.segments(q).distance(hand.sample_points(5)).min() > 0.12
+    background = scene.stream.truth(None)
+    truth = scene.stream.truth(q, [hand])
+    arm_px = (scene.stream.truth(q) < np.where(background > 0, background, np.inf) - 1e-4) & (truth > 0)
+    hand_px = truth < scene.stream.truth(q) - 1e-4
+    covered, explained = ex.arm_explains(truth, _path(0.0), among=arm_px | hand_px)
+    assert (covered & hand_px).sum() > 0.3 * hand_px.sum()  # the image test alone would hide a third of it
+    assert not (explained & hand_px).any() and (explained & arm_px).sum() >= 0.99 * (arm_px & ~hand_px).sum()
+    check = det.check(scene.stream.frame(q, [hand]), _path(0.0))
+    assert not check.clear and check.intrusions[0].zone == "bin"  # mostly hidden under the arm: a thin strip
+
+
+def test_zone_depth_intervals_and_capsule_test_match_the_point_tests() -> None:
+    scene = _scene(2)
+    det = scene.detector()
+    rng = np.random.default_rng(3)
+    v, u = rng.integers(0, 240, 5000), rng.integers(0, 320, 5000)
+    z = rng.uniform(0.2, 1.0, 5000)
+    points = det.expected.world_points(v, u, z)
+    by_pixel = np.full(len(v), -1)
+    for i in range(len(det.zones.names)):
+        by_pixel[(by_pixel < 0) & (z >= det.enter[i, v, u]) & (z <= det.leave[i, v, u])] = i
+    assert (by_pixel == det.zones.zone_of(points)).all() and (by_pixel >= 0).sum() > 500
+    segments = det.expected.segments(_path(0.5), 0.05, 0.06)
+    margin = rng.uniform(0.0, 0.03, len(points))
+    expect = (segments.distance(points) <= margin[:, None]).any(axis=1)
+    assert (segments.within(points, margin) == expect).all() and expect.sum() > 50
 
 
 def test_person_rule() -> None:

@@ -7,8 +7,10 @@ Each pixel's threshold is `k_sigma` times the depth noise of the difference of t
 sensor model), taken at the nearest reference depth of its 3x3 neighbourhood, so a depth edge that jitters by a
 pixel never reads as something new. The arm's predicted silhouette at the commanded joints is drawn from the link
 capsules of the robot model plus the tool and the held part, each grown by `silhouette_pad_m` (latency and
-tracking error), as discs of the projected radius along each capsule's axis (conservative: the disc is sized at
-the capsule's nearest depth).
+tracking error), cut into pieces along each capsule's axis and drawn as thick lines of each piece's projected
+radius at its nearest depth (conservative). A pixel inside that silhouette and its depth span is the arm only when
+its back-projected point lies inside a padded capsule (`arm_explains`): the image test alone would also hide a hand
+beside or under a link whose image it overlaps.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from normpos_grasp.errors import InputError
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.records.tool import ToolModel
 from normpos_grasp.typing import BoolArray, FloatArray
-from normpos_grasp.watch.zones import ArmSegments
+from normpos_grasp.watch.zones import ArmSegments, slab_interval
 
 SigmaFn = Callable[[FloatArray], FloatArray]  # depth noise RMS (m) of one frame at depth z (m)
 # Pixels the arm hid in the reference: anything nearer than the static scene by more than this is new even before
@@ -111,6 +113,8 @@ class ArmCapsules:
             a = np.concatenate([a, tcp[:, None]], axis=1)
             b = np.concatenate([b, tcp[:, None]], axis=1)
             r = np.concatenate([r, np.full((len(qs), 1), held_radius_m)], axis=1)
+        # link by link (each link's poses along the path together: `ArmSegments.within` culls them as a group)
+        a, b, r = a.transpose(1, 0, 2), b.transpose(1, 0, 2), np.asarray(r).T
         return ArmSegments(a.reshape(-1, 3), b.reshape(-1, 3), r.reshape(-1) + pad_m)
 
 
@@ -124,8 +128,10 @@ def arm_segments(
 
 def silhouette_depth(camera: Camera, segments: ArmSegments) -> tuple[np.ndarray, np.ndarray]:
     """(near, far) (H, W) float32: the depth range the capsules may occupy at each pixel (inf / -inf where none
-    covers it). Each capsule is drawn as a thick line with round caps between its projected ends, as wide as it looks
-    at its nearest depth, and spans from its nearest to its farthest depth (conservative)."""
+    covers it). Each capsule is cut along its axis into pieces whose depth changes by at most its radius; each piece
+    is drawn as a thick line with round caps between its projected ends, as wide as it looks at its own nearest
+    depth, and spans its own nearest to farthest depth (conservative, and tight where a link slants towards the
+    camera: a whole-capsule width and span would hide a hand beside or under the far end of a slanted link)."""
     import cv2
 
     h, w = camera.height, camera.width
@@ -146,20 +152,27 @@ def silhouette_depth(camera: Camera, segments: ArmSegments) -> tuple[np.ndarray,
         far[:] = np.inf
         return near, far
     keep = np.nonzero(~reaches)[0]
-    ua = np.clip(camera.project(a[keep]), -1e4, 1e4)
-    ub = np.clip(camera.project(b[keep]), -1e4, 1e4)
-    width = np.minimum(2 * np.ceil(camera.fx * r[keep] / z_near[keep]) + 2, 4000).astype(np.int64)
-    pa = np.round(ua).astype(np.int64)
-    pb = np.round(ub).astype(np.int64)
+    a, b, r = a[keep], b[keep], r[keep]
+    pieces = np.clip(np.ceil(np.abs(b[:, 2] - a[:, 2]) / np.maximum(r, 0.01)), 1, 16).astype(np.int64)
+    idx = np.repeat(np.arange(len(r)), pieces)
+    first = np.repeat(np.cumsum(pieces) - pieces, pieces)
+    k = np.arange(len(idx)) - first
+    s0 = (k / pieces[idx])[:, None]
+    s1 = ((k + 1) / pieces[idx])[:, None]
+    pa = a[idx] + s0 * (b[idx] - a[idx])
+    pb = a[idx] + s1 * (b[idx] - a[idx])
+    pr = r[idx]
+    zn = np.minimum(pa[:, 2], pb[:, 2]) - pr
+    zf = np.maximum(pa[:, 2], pb[:, 2]) + pr
+    ua = np.round(np.clip(camera.project(pa), -1e4, 1e4)).astype(np.int64)
+    ub = np.round(np.clip(camera.project(pb), -1e4, 1e4)).astype(np.int64)
+    width = np.minimum(2 * np.ceil(camera.fx * pr / zn) + 2, 4000).astype(np.int64)
     # painter's order: farthest near-depth first, so each pixel ends with the least near depth covering it (and the
     # greatest far depth, drawn in increasing order)
-    for order, image, values in (
-        (np.argsort(-z_near[keep]), near, z_near[keep]),
-        (np.argsort(z_far[keep]), far, z_far[keep]),
-    ):
+    for order, image, values in ((np.argsort(-zn), near, zn), (np.argsort(zf), far, zf)):
         for n in order:
             cv2.line(
-                image, (int(pa[n, 0]), int(pa[n, 1])), (int(pb[n, 0]), int(pb[n, 1])), float(values[n]), int(width[n])
+                image, (int(ua[n, 0]), int(ua[n, 1])), (int(ub[n, 0]), int(ub[n, 1])), float(values[n]), int(width[n])
             )
     return near, far
 
@@ -188,8 +201,7 @@ def render_boxes(
         with np.errstate(divide="ignore", invalid="ignore"):
             t1 = (-half[None] - o[None]) / d
             t2 = (half[None] - o[None]) / d
-        t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-        t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+        t_near, t_far = slab_interval(t1, t2)
         hit = (t_far >= np.maximum(t_near, 0.0)) & (t_near > 0)
         best = np.where(hit & (t_near < best), t_near, best)
     if floor_z is not None:
@@ -294,12 +306,37 @@ class ExpectedScene:
         path (M, 6) (every pose the arm took while the frame was on its way), padded."""
         return silhouette(self.camera, self.segments(q, held_radius_m, self.pad_m))
 
-    def arm_explains(self, depth: np.ndarray, q: FloatArray, held_radius_m: float = 0.0) -> BoolArray:
-        """(h, w) bool: pixels whose depth (reduced frame, m) lies within the depth range the arm, tool and held part
-        may occupy there at `q` (6,) or along a path (M, 6), padded and widened by the depth noise."""
-        near, far = silhouette_depth(self.camera, self.segments(q, held_radius_m, self.pad_m))
+    def arm_explains(
+        self, depth: np.ndarray, q: FloatArray, held_radius_m: float = 0.0, among: BoolArray | None = None
+    ) -> tuple[BoolArray, BoolArray]:
+        """(covered, explained), (h, w) bool, for a reduced frame's depth (m) with the arm at `q` (6,) or along a
+        path (M, 6). covered: the depth lies within the range the padded capsules may span at that pixel (image
+        test, conservative); explained: of the covered pixels in `among` (None: all), those whose back-projected
+        point lies within a padded capsule, widened by the depth noise (3D test: a hand beside or under a link
+        that merely overlaps its image is not the arm)."""
+        segments = self.segments(q, held_radius_m, self.pad_m)
+        near, far = silhouette_depth(self.camera, segments)
         tol = self._threshold(np.where(depth > 0, depth, np.float32(1.0)).astype(np.float32))
-        return np.asarray((depth >= near - tol) & (depth <= far + tol))
+        covered = np.asarray((depth >= near - tol) & (depth <= far + tol))
+        test = covered if among is None else covered & among
+        v, u = np.nonzero(test)
+        explained = np.zeros(depth.shape, dtype=bool)
+        if len(v):
+            # the arm at the newest pose explains nearly all of its own pixels: test those first, the path after
+            pts, margin = self.world_points(v, u, depth[v, u]), tol[v, u]
+            ok = self.segments(np.reshape(q, (-1, 6))[-1], held_radius_m, self.pad_m).within(pts, margin)
+            rest = np.nonzero(~ok)[0]
+            if len(rest):
+                ok[rest] = segments.within(pts[rest], margin[rest])
+            explained[v[ok], u[ok]] = True
+        return covered, explained
+
+    def world_points(self, v: np.ndarray, u: np.ndarray, z: np.ndarray) -> FloatArray:
+        """(N, 3) world points of reduced-frame pixels (rows v, columns u) at z-depths z (m)."""
+        zz = np.asarray(z, dtype=np.float64)
+        cam = np.column_stack([self.rays[v, u].astype(np.float64) * zz[:, None], zz])
+        wfc = self.camera.require_world_from_camera()
+        return np.asarray(cam @ wfc[:3, :3].T + wfc[:3, 3])
 
     def segments(self, q: FloatArray, held_radius_m: float = 0.0, pad_m: float = 0.0) -> ArmSegments:
         """Capsules of the arm at joints (6,) or along a path (M, 6), world frame."""

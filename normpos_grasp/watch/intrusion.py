@@ -1,11 +1,12 @@
 """The per-frame intrusion test: depth nearer than expected, not explained by the arm, inside a zone.
 
 For one streamed depth frame (native size): reduce it as the reference was; candidates are pixels with a valid
-depth nearer than the reference's limit (`ExpectedScene.limit`) that the arm does not explain (outside the
-predicted silhouette along the commanded joints, or inside it but nearer or farther than the arm can be there);
-a 3x3 opening drops isolated speckle; 8-connected blobs of at least `min_blob_px` pixels are back-projected to the
-world, and a blob with at least `min_blob_px` pixels inside a watched zone (or within the arm band) is an
-intrusion. Everything is vectorised; only candidate pixels are back-projected.
+depth nearer than the reference's limit (`ExpectedScene.limit`) that the arm does not explain (`arm_explains`: a
+first cut in the image, then the back-projected point tested against the padded capsules along the commanded
+joints); a 3x3 opening drops speckle, with the sensor's holes next to candidates counted as part of the shape (not
+of its size); the candidates' zones come from per-pixel depth intervals of each zone box (no back-projection) and,
+for the rest, their distance to the arm (the arm band); an 8-connected blob with at least `min_blob_px` candidate
+pixels inside a watched zone is an intrusion, back-projected to the world to be named and located.
 """
 
 from __future__ import annotations
@@ -49,11 +50,13 @@ class Intrusion:
 
 @dataclass(frozen=True, eq=False)
 class FrameCheck:
-    """Result for one frame: intrusions (empty: clear), candidate pixel count, time spent, ms."""
+    """Result for one frame: intrusions (empty: clear), candidate pixel count, time spent (wall clock and this
+    thread's CPU time), ms."""
 
     intrusions: tuple[Intrusion, ...] = ()
     n_candidates: int = 0
     elapsed_ms: float = 0.0
+    cpu_ms: float = 0.0
     candidates: BoolArray | None = field(default=None, repr=False)
 
     @property
@@ -71,6 +74,8 @@ class IntrusionDetector:
         self.zones = zones
         self.min_blob_px = int(min_blob_px)
         self.rule = rule or PersonRule()
+        # per pixel, the depth interval of each zone box along its ray (zone membership without back-projecting)
+        self.enter, self.leave = zones.depth_intervals(expected.rays, expected.camera.require_world_from_camera())
 
     @classmethod
     def from_spec(cls, expected: ExpectedScene, spec: WatchSpec) -> IntrusionDetector:
@@ -79,52 +84,73 @@ class IntrusionDetector:
     def check(
         self, depth_m: FloatArray, q: FloatArray, held_radius_m: float = 0.0, keep_mask: bool = False
     ) -> FrameCheck:
-        """Test one native-size depth frame (H, W), metres (0 = no measurement), at commanded joints q (6,) rad."""
+        """Test one native-size depth frame (H, W), metres (0 = no measurement), at commanded joints q (6,) rad, or
+        along the joint path (M, 6) of the stream's latency (the newest pose last)."""
         import cv2
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         ex = self.expected
         d = downsample_depth(depth_m, ex.factor)
         cand = (d > 0) & (d < ex.limit)
         if cand.any() or ex.unknown.any():
-            explained = ex.arm_explains(d, q, held_radius_m)
+            covered, explained = ex.arm_explains(d, q, held_radius_m, among=cand)
             cand &= ~explained
-            cand &= ~ex.learn(d, explained)
+            cand &= ~ex.learn(d, covered)
+        shape = cand
         if cand.any():
-            cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool)
+            # the opening drops speckle; holes of the sensor next to candidates count as the intruder for its shape
+            # (a hand under the arm or at an edge reaches the stream as a sparse scatter of valid pixels), never for
+            # its size
+            kernel = np.ones((3, 3), np.uint8)
+            c8 = cand.astype(np.uint8)
+            grown = c8 | (cv2.dilate(c8, kernel) & (d <= 0).astype(np.uint8))
+            shape = cv2.morphologyEx(grown, cv2.MORPH_OPEN, kernel).astype(bool)
+            cand &= shape
         n_cand = int(np.count_nonzero(cand))
         found: list[Intrusion] = []
         if n_cand >= self.min_blob_px:
-            n, labels, stats, _ = cv2.connectedComponentsWithStats(cand.astype(np.uint8), connectivity=8)
-            big = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] >= self.min_blob_px]
-            if big:
-                segments = ex.segments(q, held_radius_m) if self.zones.arm_margin_m > 0 else None
-                v, u = np.nonzero(np.isin(labels, big))
+            v, u = np.nonzero(cand)
+            zone = self._zone_of_pixels(v, u, d[v, u], q, held_radius_m)
+            inside = zone >= 0
+            if int(inside.sum()) >= self.min_blob_px:
+                _, labels = cv2.connectedComponents(shape.astype(np.uint8), connectivity=8)
                 lab = labels[v, u]
-                z = d[v, u].astype(np.float64)
-                xy = ex.rays[v, u].astype(np.float64)
-                cam = np.column_stack([xy * z[:, None], z])
-                wfc = ex.camera.require_world_from_camera()
-                world = cam @ wfc[:3, :3].T + wfc[:3, 3]
-                zone = self.zones.zone_of(world, segments)
-                for i in big:
+                area = np.bincount(lab)
+                in_zone = np.bincount(lab[inside], minlength=len(area))
+                for i in np.nonzero((area >= self.min_blob_px) & (in_zone >= self.min_blob_px))[0]:
                     sel = lab == i
+                    pts = ex.world_points(v[sel], u[sel], d[v[sel], u[sel]])
                     zi = zone[sel]
-                    inside = zi >= 0
-                    if int(inside.sum()) < self.min_blob_px:
-                        continue
-                    pts = world[sel]
-                    counts = np.bincount(zi[inside])
+                    counts = np.bincount(zi[zi >= 0])
                     step = max(1, len(pts) // 400)
                     found.append(
                         Intrusion(
                             self.zones.label(int(np.argmax(counts))),
                             classify(pts, self.rule),
-                            int(sel.sum()),
-                            int(inside.sum()),
+                            int(area[i]),
+                            int(in_zone[i]),
                             pts.mean(axis=0),
                             blob_extent(pts),
                             pts[::step][:400],
                         )
                     )
-        return FrameCheck(tuple(found), n_cand, (time.perf_counter() - t0) * 1e3, cand if keep_mask else None)
+        elapsed, cpu = (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3
+        return FrameCheck(tuple(found), n_cand, elapsed, cpu, cand if keep_mask else None)
+
+    def _zone_of_pixels(
+        self, v: np.ndarray, u: np.ndarray, z: np.ndarray, q: FloatArray, held_radius_m: float
+    ) -> np.ndarray:
+        """(N,) zone index of reduced-frame pixels at depths z (m): the first box holding the point, len(names) for
+        the arm band (within `arm_margin_m` of the arm along the path q), -1 for none."""
+        zone = np.full(len(v), -1, dtype=np.int64)
+        for i in range(len(self.zones.names)):
+            hit = (zone < 0) & (z >= self.enter[i, v, u]) & (z <= self.leave[i, v, u])
+            zone[hit] = i
+        if self.zones.arm_margin_m > 0:
+            rest = np.nonzero(zone < 0)[0]
+            if len(rest):
+                ex = self.expected
+                pts = ex.world_points(v[rest], u[rest], z[rest])
+                near = ex.segments(q, held_radius_m).within(pts, self.zones.arm_margin_m)
+                zone[rest[near]] = len(self.zones.names)
+        return zone

@@ -42,6 +42,27 @@ class WatchZones:
             out[near] = len(self.names)
         return out
 
+    def depth_intervals(self, rays: np.ndarray, world_from_camera: FloatArray) -> tuple[np.ndarray, np.ndarray]:
+        """(enter, leave), each (Z, H, W) float32: the z-depths (m) between which each pixel's ray (rays (H, W, 2):
+        normalised pixel coordinates, so a point is z (x, y, 1)) lies inside each zone box; enter > leave where the
+        ray misses it. A pixel at depth z is in zone i when enter[i] <= z <= leave[i] (the same test as `zone_of`
+        on its back-projected point, without back-projecting)."""
+        h, w = rays.shape[:2]
+        dirs = np.concatenate([rays.reshape(-1, 2), np.ones((h * w, 1))], axis=1) @ world_from_camera[:3, :3].T
+        o = world_from_camera[:3, 3]
+        enter = np.full((len(self.names), h * w), np.inf, dtype=np.float32)
+        leave = np.full((len(self.names), h * w), -np.inf, dtype=np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for i in range(len(self.names)):
+                t1 = (self.lo[i] - o) / dirs
+                t2 = (self.hi[i] - o) / dirs
+                # a ray parallel to a slab: inside it for all t (nan -> ignored) or never (inf bounds)
+                near, far = slab_interval(t1, t2)
+                hit = far >= np.maximum(near, 0.0)
+                enter[i, hit] = np.maximum(near[hit], 0.0)
+                leave[i, hit] = far[hit]
+        return enter.reshape(-1, h, w), leave.reshape(-1, h, w)
+
     def label(self, index: int) -> str:
         return self.names[index] if 0 <= index < len(self.names) else "arm_band"
 
@@ -64,8 +85,59 @@ class ArmSegments:
         closest = a[None] + t[..., None] * ab[None]
         return np.asarray(np.linalg.norm(p[:, None, :] - closest, axis=2) - self.radius[None])
 
-    def within(self, points: FloatArray, margin_m: float) -> BoolArray:
-        """(N,) True where a point lies within `margin_m` of some capsule."""
-        if len(self.radius) == 0:
-            return np.zeros(len(np.asarray(points).reshape(-1, 3)), dtype=bool)
-        return np.asarray(self.distance(points).min(axis=1) <= margin_m)
+    def within(self, points: FloatArray, margin_m: FloatArray | float) -> BoolArray:
+        """(N,) True where a point (N, 3) lies within `margin_m` (scalar or (N,), m) of some capsule's surface.
+
+        Capsules are taken `CHUNK` at a time (`ArmCapsules.at` lists them link by link, so a chunk is one link along
+        the path); only points inside a chunk's bounding box, and not yet found, are measured against it."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        n = len(p)
+        out = np.zeros(n, dtype=bool)
+        if len(self.radius) == 0 or n == 0:
+            return out
+        margin = np.broadcast_to(np.asarray(margin_m, dtype=np.float64).reshape(-1), (n,))
+        reach_max = self.radius + float(margin.max())
+        for lo in range(0, len(self.radius), CHUNK):
+            a, b = self.start[lo : lo + CHUNK], self.end[lo : lo + CHUNK]
+            grow = reach_max[lo : lo + CHUNK, None]
+            box_lo = np.minimum(a, b) - grow
+            box_hi = np.maximum(a, b) + grow
+            inside = ~out & np.all((p >= box_lo.min(axis=0)) & (p <= box_hi.max(axis=0)), axis=1)
+            idx = np.nonzero(inside)[0]
+            if len(idx) == 0:
+                continue
+            out[idx] = _near_any(p[idx], a, b, self.radius[lo : lo + CHUNK], margin[idx])
+        return out
+
+
+CHUNK = 8  # capsules measured together in `ArmSegments.within`
+
+
+def _near_any(p: FloatArray, a: FloatArray, b: FloatArray, radius: FloatArray, margin: FloatArray) -> BoolArray:
+    """(n,) True where a point p (n, 3) lies within radius (c,) + margin (n,) of some segment a-b (c, 3); float32,
+    coordinates taken relative to the first point (sub-millimetre rounding over a cell)."""
+    o = p[0]
+    p32 = (p - o).astype(np.float32)
+    a32 = (a - o).astype(np.float32)
+    ab = (b - a).astype(np.float32)
+    inv = (1.0 / np.maximum(np.einsum("cj,cj->c", ab, ab), 1e-12)).astype(np.float32)
+    q = [p32[:, k, None] - a32[None, :, k] for k in range(3)]  # (n, c) each
+    t = q[0] * ab[:, 0] + q[1] * ab[:, 1] + q[2] * ab[:, 2]
+    t *= inv
+    np.clip(t, 0.0, 1.0, out=t)
+    d2 = np.zeros_like(t)
+    for k in range(3):
+        g = q[k] - t * ab[:, k]
+        d2 += g * g
+    reach = np.maximum(radius.astype(np.float32)[None] + margin.astype(np.float32)[:, None], 0.0)
+    return np.asarray(np.any(d2 <= reach * reach, axis=1))
+
+
+def slab_interval(t1: np.ndarray, t2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(near, far) (N,) ray parameters of a box from the (N, 3) parameters at which each ray crosses its two faces
+    on each axis (NaN ignored: a ray in a face's plane); column by column (a reduction over an axis of 3 costs
+    several times more)."""
+    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+    near = np.fmax(np.fmax(lo[:, 0], lo[:, 1]), lo[:, 2])
+    far = np.fmin(np.fmin(hi[:, 0], hi[:, 1]), hi[:, 2])
+    return near, far
