@@ -459,8 +459,9 @@ def _place_motion(
         if not all(free_held(q) for q in placing):
             last = _PathRejected(f"place {place.name!r}: collision placing", "place_collision")
             continue
-        with world.empty_handed():
-            leaving_hit = any(world.check_arm(q) is not None for q in seg_post[1:])
+        with world.empty_handed():  # the arm alone where the spheres cannot prove the configuration clear
+            leaving = seg_post[1:][~world.configs_clear(seg_post[1:], free_held.opening)]
+            leaving_hit = any(world.check_arm(q) is not None for q in leaving)
         if leaving_hit:
             last = _PathRejected(f"place {place.name!r}: collision leaving", "place_collision")
             continue
