@@ -572,13 +572,17 @@ def _arm_collisions(
 def _arm_at_poses(
     q: FloatArray, c: GraspCandidate, target: Target, poses: FloatArray, world: CollisionWorld
 ) -> tuple[Hit | None, str]:
+    """First hit of the arm at entry, pre-grasp, grasp (empty-handed) and of arm, tool and held target at lift and
+    exit, on one branch q (5, 6); fcl runs only where the bounding spheres cannot prove a pose clear."""
+    clear = world.configs_clear(q[:3], c.opening_m)
     for p in (2, 1, 0):  # grasp first: the most constrained
-        hit = world.check_arm(q[p])
+        hit = None if clear[p] else world.check_arm(q[p])
         if hit is not None:
             return hit, POSE_NAMES[p]
     with world.holding(target.name, target.mesh, invert_pose(poses[2]) @ target.world_from_object):  # type: ignore[arg-type]
+        clear = world.configs_clear(q[3:], c.opening_m)
         for p in (3, 4):
-            hit = world.check_config(q[p], c.opening_m)
+            hit = None if clear[p - 3] else world.check_config(q[p], c.opening_m)
             if hit is not None:
                 return hit, POSE_NAMES[p]
     return None, ""
