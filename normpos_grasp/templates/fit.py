@@ -638,8 +638,9 @@ def _pca_hypotheses(prep: PreparedTemplate, meas: _Measured) -> FloatArray:
     view = view / max(float(np.linalg.norm(view)), 1e-12)
     rots = np.einsum("ij,njk,kl->nil", prep.axes, np.array(_SIGNED_PERMS), am.T)  # object_from_frame rotations
     v_obj = rots @ view  # (24, 3) viewing direction in the object frame
-    # centre of the samples facing the camera in each assignment
-    cv = kernels.facing_centres(prep.samples, prep.normals, np.ascontiguousarray(v_obj), prep.centroid, -0.1)
+    vis = (prep.normals @ v_obj.T < -0.1).astype(np.float64)  # (S, 24) samples facing the camera
+    cnt = vis.sum(axis=0)
+    cv = np.where(cnt[:, None] > 0, (vis.T @ prep.samples) / np.maximum(cnt, 1.0)[:, None], prep.centroid)
     out = np.tile(np.eye(4), (len(rots), 1, 1))
     out[:, :3, :3] = rots
     out[:, :3, 3] = cv - rots @ c

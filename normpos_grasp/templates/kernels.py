@@ -1203,14 +1203,54 @@ def fit_stats_many(r, d, scales, thr, spacing, beside_spacings, beside_thr, neig
 @njit(cache=True, nogil=True)
 def depth_scores(samples, normals, cfo, scale, spacing, fx, fy, cx, cy, depth, tol, rad, front_lim):  # type: ignore[no-untyped-def]
     """Depth-image evidence of one pose in a pinhole camera (no distortion), in one call: `visible_points`,
-    `project_pinhole`, `depth_evidence` and `silhouette_evidence`. Returns (n_visible, supported, inside and not
-    occluded, violating, missing, not grazing, occluded, explained, front)."""
+    `project_pinhole`, then `depth_evidence` and `silhouette_evidence` from one scan of each point's window.
+    Returns (n_visible, supported, inside and not occluded, violating, missing, not grazing, occluded,
+    explained, front)."""
     pv, nv = visible_points(samples, normals, cfo, scale, spacing)
     if pv.shape[0] == 0:
         return 0, 0, 0, 0, 0, 0, 0, 0, 0
     uv = project_pinhole(pv, fx, fy, cx, cy)
-    n_sup, n_den, n_vio, n_mis, n_ng, n_occ = depth_evidence(pv, nv, uv, depth, tol, rad)
-    _, n_exp, n_front = silhouette_evidence(pv, uv, depth, tol, rad, front_lim)
+    hgt, wid = depth.shape
+    n_sup = n_den = n_vio = n_mis = n_ng = n_occ = n_exp = n_front = 0
+    see_lim = max(3.0 * tol, 0.01)
+    for i in range(pv.shape[0]):
+        u = uv[i, 0]
+        v = uv[i, 1]
+        if not (u >= 0 and u < wid and v >= 0 and v < hgt):
+            continue
+        z = pv[i, 2]
+        plen = math.sqrt(pv[i, 0] ** 2 + pv[i, 1] ** 2 + z * z)
+        grazing = abs(nv[i, 0] * pv[i, 0] + nv[i, 1] * pv[i, 1] + nv[i, 2] * z) < 0.3 * plen
+        meas = depth[v, u]
+        valid = meas > 0 and np.isfinite(meas)
+        occluded = valid and meas - z < -tol
+        nearest = np.inf
+        closest = np.inf
+        for dv in range(-rad, rad + 1):
+            vv = min(max(v + dv, 0), hgt - 1)
+            for du in range(-rad, rad + 1):
+                uu = min(max(u + du, 0), wid - 1)
+                val = depth[vv, uu]
+                if val > 0 and np.isfinite(val):
+                    nearest = min(nearest, val)
+                    closest = min(closest, abs(val - z))
+        if occluded:
+            n_occ += 1
+        else:
+            n_den += 1
+            if closest <= tol:
+                n_sup += 1
+        if not grazing:
+            n_ng += 1
+            if np.isfinite(nearest):
+                if nearest - z > see_lim:
+                    n_vio += 1
+            else:
+                n_mis += 1
+        if closest <= tol:
+            n_exp += 1
+        elif valid and z - meas > tol and z - meas <= front_lim:
+            n_front += 1
     return pv.shape[0], n_sup, n_den, n_vio, n_mis, n_ng, n_occ, n_exp, n_front
 
 
@@ -1267,31 +1307,4 @@ def near_surface_share(poses, pts, samples, grid_origin, grid_cell, grid_index, 
             if math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) < lim:
                 cnt += 1
         out[a] = cnt / p
-    return out
-
-
-@njit(cache=True, nogil=True)
-def facing_centres(samples, normals, views, centroid, cos_lim):  # type: ignore[no-untyped-def]
-    """(R, 3) mean of the samples (S, 3) whose normals (S, 3) face each viewing direction views (R, 3)
-    (n . v < cos_lim), the centroid (3,) where none does (the PCA hypotheses' visible centres)."""
-    r = views.shape[0]
-    out = np.empty((r, 3))
-    for a in range(r):
-        v0, v1, v2 = views[a, 0], views[a, 1], views[a, 2]
-        cnt = 0
-        s0 = s1 = s2 = 0.0
-        for i in range(samples.shape[0]):
-            if normals[i, 0] * v0 + normals[i, 1] * v1 + normals[i, 2] * v2 < cos_lim:
-                cnt += 1
-                s0 += samples[i, 0]
-                s1 += samples[i, 1]
-                s2 += samples[i, 2]
-        if cnt > 0:
-            out[a, 0] = s0 / cnt
-            out[a, 1] = s1 / cnt
-            out[a, 2] = s2 / cnt
-        else:
-            out[a, 0] = centroid[0]
-            out[a, 1] = centroid[1]
-            out[a, 2] = centroid[2]
     return out
