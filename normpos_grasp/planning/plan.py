@@ -380,24 +380,48 @@ def _line(
     opts: PlanOptions,
 ) -> tuple[FloatArray, FloatArray]:
     """Joint samples (K, 6) and TCP positions (K, 3) of the straight TCP line a -> b (same orientation)."""
-    dist = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
-    n = max(int(np.ceil(dist / opts.cartesian_step_m)), 1)
-    s = np.linspace(0.0, 1.0, n + 1)
-    poses = np.repeat(a[None], n + 1, axis=0)
-    poses[:, :3, 3] = a[:3, 3] + s[:, None] * (b[:3, 3] - a[:3, 3])
-    q, exists, _ = arm.ik_reasons(poses @ tcp_from_flange)
-    if not exists[:, branch].all():
-        raise _PathRejected("straight line leaves the IK branch", "path_ik")
-    raw = q[:, branch]
+    return _lines(arm, tcp_from_flange, np.stack([a, b]), q_start, branch, opts)[0]
+
+
+def _lines(
+    arm: ArmModel,
+    tcp_from_flange: FloatArray,
+    corners: FloatArray,
+    q_start: FloatArray,
+    branch: int,
+    opts: PlanOptions,
+) -> list[tuple[FloatArray, FloatArray]]:
+    """`_line` through the TCP poses `corners` (L + 1, 4, 4) one after the other (each line starts where the one
+    before ends), IK solved for all their samples at once; the first line that fails raises."""
+    pieces = []
+    for a, b in zip(corners[:-1], corners[1:], strict=True):
+        dist = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
+        n = max(int(np.ceil(dist / opts.cartesian_step_m)), 1)
+        s = np.linspace(0.0, 1.0, n + 1)
+        poses = np.repeat(a[None], n + 1, axis=0)
+        poses[:, :3, 3] = a[:3, 3] + s[:, None] * (b[:3, 3] - a[:3, 3])
+        pieces.append(poses)
+    q_all, exists_all, _ = arm.ik_reasons(np.concatenate(pieces) @ tcp_from_flange)
+    out = []
+    start = 0
+    prev = q_start
     two_pi = 2 * np.pi
-    # each sample by whole turns next to the one before (the first next to q_start): the turns add up along the line
-    turns = np.cumsum(np.round((np.vstack([q_start, raw[:-1]]) - raw) / two_pi), axis=0)
-    qs = raw + two_pi * turns
-    if np.abs(np.diff(np.vstack([q_start, qs]), axis=0)).max() > opts.max_joint_jump_rad:
-        raise _PathRejected("straight line passes a singularity (joint jump)", "path_singularity")
-    if np.any(qs < arm.lower - 1e-9) or np.any(qs > arm.upper + 1e-9):
-        raise _PathRejected("straight line leaves the joint limits", "path_joint_limits")
-    return qs, poses[:, :3, 3]
+    for poses in pieces:
+        q, exists = q_all[start : start + len(poses)], exists_all[start : start + len(poses)]
+        start += len(poses)
+        if not exists[:, branch].all():
+            raise _PathRejected("straight line leaves the IK branch", "path_ik")
+        raw = q[:, branch]
+        # each sample by whole turns next to the one before (the first next to prev): the turns add up along the line
+        turns = np.cumsum(np.round((np.vstack([prev, raw[:-1]]) - raw) / two_pi), axis=0)
+        qs = raw + two_pi * turns
+        if np.abs(np.diff(np.vstack([prev, qs]), axis=0)).max() > opts.max_joint_jump_rad:
+            raise _PathRejected("straight line passes a singularity (joint jump)", "path_singularity")
+        if np.any(qs < arm.lower - 1e-9) or np.any(qs > arm.upper + 1e-9):
+            raise _PathRejected("straight line leaves the joint limits", "path_joint_limits")
+        out.append((qs, poses[:, :3, 3]))
+        prev = qs[-1]
+    return out
 
 
 def _place_pose(place: PlaceSpec, tcp_from_object: FloatArray, target: Target, drop_m: float) -> FloatArray:
@@ -450,8 +474,9 @@ def _place_motion(
     last = _PathRejected(f"place {place.name!r}: no branch", "place_ik")
     for place_pose, pre_place, q_pp, pb in options:
         try:
-            seg_place, tcp_place = _line(arm, tcp_from_flange, pre_place, place_pose, q_pp, pb, opts)
-            seg_post, tcp_post = _line(arm, tcp_from_flange, place_pose, pre_place, seg_place[-1], pb, opts)
+            (seg_place, tcp_place), (seg_post, tcp_post) = _lines(
+                arm, tcp_from_flange, np.stack([pre_place, place_pose, pre_place]), q_pp, pb, opts
+            )
         except _PathRejected as exc:
             last = exc
             continue
@@ -493,10 +518,9 @@ def _build_path(
     free_held = free_empty  # the world's held object (attached or not) is part of every check
 
     # 1. straight lines first (cheap), transfers (joint-space search) last
-    seg_entry, tcp_entry = _line(arm, tcp_from_flange, poses[0], poses[1], qs[0], b, opts)
-    seg_pre, tcp_pre = _line(arm, tcp_from_flange, poses[1], poses[2], seg_entry[-1], b, opts)
-    seg_lift, tcp_lift = _line(arm, tcp_from_flange, poses[2], poses[3], seg_pre[-1], b, opts)
-    seg_exit, tcp_exit = _line(arm, tcp_from_flange, poses[3], poses[4], seg_lift[-1], b, opts)
+    (seg_entry, tcp_entry), (seg_pre, tcp_pre), (seg_lift, tcp_lift), (seg_exit, tcp_exit) = _lines(
+        arm, tcp_from_flange, poses, qs[0], b, opts
+    )
     clear = world.configs_clear(seg_entry[1:], opening)
     for q in seg_entry[1:][~clear]:
         if not free_empty(q):
