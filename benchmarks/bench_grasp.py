@@ -152,6 +152,7 @@ def main() -> None:
     statuses: Counter[str] = Counter()
     robot = Robot.load("ur5e")
     t_scenes = 0.0
+    load_before = os.getloadavg()[0]
     for s in range(args.scenes):
         t0 = time.perf_counter()
         layout = compose_scene(SceneOptions(count=args.parts, seed=args.seed + s), library)
@@ -198,7 +199,7 @@ def main() -> None:
     print(f"fits -> plan wall: median {np.median(t):.1f} ms, p90 {np.percentile(t, 90):.1f} ms, max {t.max():.1f} ms")
     print(
         f"fits -> plan CPU time of this process: median {np.median(c):.1f} ms, p90 {np.percentile(c, 90):.1f} ms "
-        f"(load average while running: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)"
+        f"(load average before / after: {load_before:.1f} / {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)"
     )
     print("  stage means, wall (ms): " + ", ".join(f"{k} {v / (n * args.repeats):.1f}" for k, v in stages.items()))
     print(f"candidates per scene: median {np.median(n_cands):.0f} (min {min(n_cands)}, max {max(n_cands)})")
