@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -71,6 +72,7 @@ def main() -> None:
     from normpos_grasp.sim.scene import SceneOptions
 
     library = default_part_library()
+    print(f"load average before: {_load()} (1 / 5 / 15 min, {os.cpu_count()} CPUs)")
     t_prep = time.perf_counter()
     for t in library:
         prepare(t)
@@ -177,8 +179,13 @@ def main() -> None:
             f"label '' (fit_best over {len(library)} templates): {unl[1]}/{unl[0]} right template accepted, "
             f"{unl[2]} wrong template accepted; CPU per object median {np.median(unl_cpu) * 1000:.0f} ms"
         )
+    print(f"load average after: {_load()}")
     if args.lmo:
         lmo()
+
+
+def _load() -> str:
+    return " / ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
 def lmo() -> None:
