@@ -973,8 +973,9 @@ def visible_points(samples, normals, cfo, scale, spacing):  # type: ignore[no-un
     j = 0
     for i in range(s):
         if vis[i]:
-            pv[j] = pc[i]
-            nv[j] = nc[i]
+            for u in range(3):  # element copies: row-slice assignment costs more than the copy
+                pv[j, u] = pc[i, u]
+                nv[j, u] = nc[i, u]
             j += 1
     return pv, nv
 
