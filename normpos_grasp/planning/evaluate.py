@@ -15,11 +15,10 @@ from __future__ import annotations
 
 import heapq
 import logging
-import weakref
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -251,7 +250,6 @@ def evaluate_candidates(
     heap = [(-float(prior[i]), i) for i in order]  # sorted: already a heap
     waiting: dict[int, Evaluation] = {}  # collision-free and judged, back in line at the exact prior
     cap = opts.max_feasible_per_target
-    neighbours = _Neighbours.build(targets, tool)
     while heap and not (opts.max_feasible and len(feasible) >= opts.max_feasible):
         _, i = heapq.heappop(heap)
         c = candidates[i]
@@ -260,9 +258,6 @@ def evaluate_candidates(
         ev = waiting.pop(i, None)
         if ev is None:
             t = targets[c.target]
-            if _surely_touches(neighbours, poses[i, 2], c.opening_m, c.target, world, targets):
-                verdict[i] = Evaluation(c, False, "collision_object", "grasp", poses[i])
-                continue
             ev = _tool_collisions(c, poses[i], t, world, opts)
             if ev is not None:
                 verdict[i] = ev
@@ -445,81 +440,6 @@ def _unwrap_branch(q: FloatArray, arm: ArmModel) -> FloatArray:
         take = ~inside_now & inside_moved
         out = np.where(take[None], moved, out)
     return out
-
-
-#: surface samples per template for the certain-contact pre-test, and how deep inside a tool box a sample must lie
-#: to count (well past fcl's tolerances), m
-SURFACE_SAMPLES = 1500
-INSIDE_M = 1e-5
-_SURFACE_CACHE: dict[int, tuple[weakref.ref[Any], FloatArray]] = {}
-
-
-def _surface_points(mesh: Any) -> FloatArray:
-    """(SURFACE_SAMPLES, 3) points on `mesh` (object frame, area-weighted, seed 0), once per mesh object."""
-    key = id(mesh)
-    hit = _SURFACE_CACHE.get(key)
-    if hit is not None and hit[0]() is mesh:
-        return hit[1]
-    from trimesh.sample import sample_surface
-
-    pts = np.asarray(sample_surface(mesh, SURFACE_SAMPLES, seed=0)[0], dtype=np.float64)
-
-    def _forget(_ref: weakref.ref[Any], k: int = key) -> None:
-        _SURFACE_CACHE.pop(k, None)
-
-    _SURFACE_CACHE[key] = (weakref.ref(mesh, _forget), pts)
-    return pts
-
-
-@dataclass(frozen=True, eq=False)
-class _Neighbours:
-    """Surface samples of the targets in the world frame, for `_surely_touches`: points (T,) of (S, 3), their AABBs
-    lo, hi (T, 3) m, and the tool's boxes (tcp_from_shape (4, 4), half extents (3,), moves) in tool order."""
-
-    points: list[FloatArray]
-    lo: FloatArray
-    hi: FloatArray
-    boxes: list[tuple[FloatArray, FloatArray, float, float]]
-
-    @classmethod
-    def build(cls, targets: list[Target], tool: Any) -> _Neighbours:
-        pts = [_surface_points(t.mesh) @ t.world_from_object[:3, :3].T + t.world_from_object[:3, 3] for t in targets]
-        lo = np.array([p.min(axis=0) for p in pts]).reshape(-1, 3)
-        hi = np.array([p.max(axis=0) for p in pts]).reshape(-1, 3)
-        boxes = [
-            (np.asarray(s.tcp_from_shape, dtype=np.float64), np.asarray(s.size, dtype=np.float64) / 2.0, float(s.moves),
-             float(s.size[0]) / 2.0)
-            for s in tool.shapes
-            if s.kind == "box"
-        ]  # fmt: skip
-        return cls(pts, lo, hi, boxes)
-
-
-def _surely_touches(
-    nb: _Neighbours,
-    world_from_tcp: FloatArray,
-    opening_m: float,
-    skip: int,
-    world: CollisionWorld,
-    targets: list[Target],
-) -> bool:
-    """Whether a surface sample of an enabled target other than `skip` lies `INSIDE_M` deep in a box of the tool
-    at `world_from_tcp` (4, 4), jaws at `opening_m`: then the fcl check finds that contact for certain."""
-    for local, half, moves, finger_half in nb.boxes:
-        if moves:
-            local = local.copy()
-            local[0, 3] += moves * (opening_m / 2.0 + finger_half)
-        pose = world_from_tcp @ local
-        reach = np.abs(pose[:3, :3]) @ half  # half extents of the box's world AABB
-        near = np.all((nb.lo <= pose[:3, 3] + reach) & (nb.hi >= pose[:3, 3] - reach), axis=1)
-        near[skip] = False
-        for j in np.flatnonzero(near):
-            if not world.is_enabled(targets[int(j)].name):
-                continue
-            inside = np.abs((nb.points[int(j)] - pose[:3, 3]) @ pose[:3, :3]) < half - INSIDE_M
-            if np.any(np.all(inside, axis=1)):
-                return True
-    return False
 
 
 def _tool_collisions(
