@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from collections import Counter
+from collections import Counter, defaultdict
 from dataclasses import replace
 from pathlib import Path
 
@@ -144,7 +144,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     library = default_part_library()
-    times, cpu_times, stages, n_cands = [], [], Counter(), []
+    times: list[float] = []
+    cpu_times: list[float] = []
+    n_cands: list[int] = []
+    stages: defaultdict[str, float] = defaultdict(float)
     reasons: Counter[str] = Counter()
     eligible = found = 0
     collisions = 0
