@@ -5,12 +5,11 @@ The reference is the depth frame of the last measurement (the one the plan was m
 at) or saw nothing, the reference falls back to the cell's static boxes (and floor) rendered through the camera.
 Each pixel's threshold is `k_sigma` times the depth noise of the difference of two frames (sqrt(2) sigma(z) of the
 sensor model), taken at the nearest reference depth of its 3x3 neighbourhood, so a depth edge that jitters by a
-pixel never reads as something new. The arm's predicted silhouette at the commanded joints is drawn from the link
-capsules of the robot model plus the tool and the held part, each grown by `silhouette_pad_m` (latency and
-tracking error), cut into pieces along each capsule's axis and drawn as thick lines of each piece's projected
-radius at its nearest depth (conservative). A pixel inside that silhouette and its depth span is the arm only when
-its back-projected point lies inside a padded capsule (`arm_explains`): the image test alone would also hide a hand
-beside or under a link whose image it overlaps.
+pixel never reads as something new. The arm, tool and held part are the link capsules of the robot model, the
+tool's boxes as bounding capsules and a sphere at the TCP, each grown by `silhouette_pad_m` (latency and tracking
+error); a pixel is the arm when its back-projected point lies inside one of them at some pose the arm took while the
+frame was on its way (`arm_explains`, a 3D test). Their silhouette (`silhouette_depth`: each capsule cut into
+pieces drawn as wide as they look at their own nearest depth) marks the pixels the arm hid in the reference.
 """
 
 from __future__ import annotations
@@ -288,8 +287,8 @@ class ExpectedScene:
         return np.float32(self.k_sigma * np.sqrt(2.0)) * np.asarray(self.sigma(z.astype(np.float64)), np.float32)
 
     def learn(self, depth: np.ndarray, covered: BoolArray) -> BoolArray:
-        """Adopt `depth` (reduced frame) where the reference is still unknown and the arm's predicted silhouette
-        `covered` leaves the pixel free and the depth is no nearer than the static scene allows (its limit); returns
+        """Adopt `depth` (reduced frame) where the reference is still unknown, the pixel is not the arm (`covered`:
+        `arm_explains`) and the depth is no nearer than the static scene allows (its limit); returns
         the pixels adopted (not nearer than their limit, so no candidates in this frame)."""
         if not self.unknown.any():
             return np.zeros(depth.shape, dtype=bool)
@@ -308,28 +307,27 @@ class ExpectedScene:
 
     def arm_explains(
         self, depth: np.ndarray, q: FloatArray, held_radius_m: float = 0.0, among: BoolArray | None = None
-    ) -> tuple[BoolArray, BoolArray]:
-        """(covered, explained), (h, w) bool, for a reduced frame's depth (m) with the arm at `q` (6,) or along a
-        path (M, 6). covered: the depth lies within the range the padded capsules may span at that pixel (image
-        test, conservative); explained: of the covered pixels in `among` (None: all), those whose back-projected
-        point lies within a padded capsule, widened by the depth noise (3D test: a hand beside or under a link
-        that merely overlaps its image is not the arm)."""
-        segments = self.segments(q, held_radius_m, self.pad_m)
-        near, far = silhouette_depth(self.camera, segments)
-        tol = self._threshold(np.where(depth > 0, depth, np.float32(1.0)).astype(np.float32))
-        covered = np.asarray((depth >= near - tol) & (depth <= far + tol))
-        test = covered if among is None else covered & among
+    ) -> BoolArray:
+        """(h, w) bool: pixels of a reduced frame (depth, m) whose back-projected point lies inside a padded capsule
+        of the arm, tool or held part at `q` (6,) or along a path (M, 6) (newest pose last), widened by the depth
+        noise. Tested: the valid pixels in `among` (None: all) and the valid pixels still unknown (`learn` needs
+        them). A 3D test, not an image one: a hand beside or under a link that merely overlaps its image is not
+        the arm; and no drawing, so the watch thread gives up the GIL rarely (each drawing call hands it over)."""
+        valid = depth > 0
+        test = valid if among is None else (among & valid) | (self.unknown & valid)
         v, u = np.nonzero(test)
         explained = np.zeros(depth.shape, dtype=bool)
-        if len(v):
-            # the arm at the newest pose explains nearly all of its own pixels: test those first, the path after
-            pts, margin = self.world_points(v, u, depth[v, u]), tol[v, u]
-            ok = self.segments(np.reshape(q, (-1, 6))[-1], held_radius_m, self.pad_m).within(pts, margin)
-            rest = np.nonzero(~ok)[0]
-            if len(rest):
-                ok[rest] = segments.within(pts[rest], margin[rest])
-            explained[v[ok], u[ok]] = True
-        return covered, explained
+        if len(v) == 0:
+            return explained
+        z = depth[v, u]
+        pts, margin = self.world_points(v, u, z), self._threshold(z)
+        # the arm at the newest pose explains nearly all of its own pixels: test those first, the path after
+        ok = self.segments(np.reshape(q, (-1, 6))[-1], held_radius_m, self.pad_m).within(pts, margin)
+        rest = np.nonzero(~ok)[0]
+        if len(rest) and np.reshape(q, (-1, 6)).shape[0] > 1:
+            ok[rest] = self.segments(q, held_radius_m, self.pad_m).within(pts[rest], margin[rest])
+        explained[v[ok], u[ok]] = True
+        return explained
 
     def world_points(self, v: np.ndarray, u: np.ndarray, z: np.ndarray) -> FloatArray:
         """(N, 3) world points of reduced-frame pixels (rows v, columns u) at z-depths z (m)."""

@@ -1,12 +1,12 @@
 """The per-frame intrusion test: depth nearer than expected, not explained by the arm, inside a zone.
 
 For one streamed depth frame (native size): reduce it as the reference was; candidates are pixels with a valid
-depth nearer than the reference's limit (`ExpectedScene.limit`) that the arm does not explain (`arm_explains`: a
-first cut in the image, then the back-projected point tested against the padded capsules along the commanded
-joints); a 3x3 opening drops speckle, with the sensor's holes next to candidates counted as part of the shape (not
-of its size); the candidates' zones come from per-pixel depth intervals of each zone box (no back-projection) and,
-for the rest, their distance to the arm (the arm band); an 8-connected blob with at least `min_blob_px` candidate
-pixels inside a watched zone is an intrusion, back-projected to the world to be named and located.
+depth nearer than the reference's limit (`ExpectedScene.limit`) that the arm does not explain (`arm_explains`: the
+back-projected point lies in no padded capsule of the arm along the commanded joints); a 3x3 opening drops
+speckle, with the sensor's holes next to candidates counted as part of the shape (not of its size); the
+candidates' zones come from per-pixel depth intervals of each zone box (no back-projection) and, for the rest,
+their distance to the arm (the arm band); an 8-connected blob with at least `min_blob_px` candidate pixels inside
+a watched zone is an intrusion, back-projected to the world to be named and located.
 """
 
 from __future__ import annotations
@@ -93,9 +93,9 @@ class IntrusionDetector:
         d = downsample_depth(depth_m, ex.factor)
         cand = (d > 0) & (d < ex.limit)
         if cand.any() or ex.unknown.any():
-            covered, explained = ex.arm_explains(d, q, held_radius_m, among=cand)
+            explained = ex.arm_explains(d, q, held_radius_m, among=cand)
             cand &= ~explained
-            cand &= ~ex.learn(d, covered)
+            cand &= ~ex.learn(d, explained)
         shape = cand
         if cand.any():
             # the opening drops speckle; holes of the sensor next to candidates count as the intruder for its shape
