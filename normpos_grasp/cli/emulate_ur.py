@@ -51,13 +51,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--robotiq-port must be a TCP port 1-65535, got {args.robotiq_port}")
     if args.q_home is not None:
         options.q_home = tuple(args.q_home)
-    emulator = UREmulator(options).start()
-    logging.getLogger("normpos_grasp").setLevel(min(logging.getLogger().level, logging.INFO))
 
     def _term(signum: int, frame: object) -> None:
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, _term)
+    # SIGINT and SIGTERM end the emulator whatever it inherited: an ignored SIGINT (SIG_IGN survives exec, and
+    # Python then keeps ignoring it) or a blocked mask would leave it running until its parent kills it
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _term)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    emulator = UREmulator(options).start()
+    logging.getLogger("normpos_grasp").setLevel(min(logging.getLogger().level, logging.INFO))
     gripper = f", Robotiq {options.robotiq_model} {options.robotiq_port}" if options.robotiq_model else ""
     print(
         f"emulate-ur: {args.model} listening on {args.host} (RTDE 30004, dashboard 29999, script 30003{gripper})",

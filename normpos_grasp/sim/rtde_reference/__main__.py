@@ -26,6 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})  # a mask inherited from the parent
     try:
         ctl = ReferenceController(
             Settings(args.model, args.host, args.serial, args.unlock_delay, rt_priority=args.rt_priority)
