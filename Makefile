@@ -26,7 +26,7 @@ demo: install
 test: install
 	$(BIN)/ruff check normpos_grasp tests benchmarks examples robots
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile  # two workers; a test file stays in one (its fixtures too)
 
 lock:
 	$(PYTHON) -m venv .lockenv
