@@ -16,6 +16,7 @@ from normpos_grasp.geometry.transforms import make_pose, random_rotation
 from normpos_grasp.records.template import Template
 from normpos_grasp.templates import kernels
 from normpos_grasp.templates.fit import FitContext, FitOptions, fit_best, fit_many
+from normpos_grasp.templates.icp import candidates
 from normpos_grasp.templates.library import load_library
 from normpos_grasp.templates.prepared import PreparedTemplate, normal_bins, prepare
 from normpos_grasp.templates.synthetic import render_views
@@ -58,6 +59,19 @@ def test_exact_correspondences_match_kd_tree_reference(lib: dict[str, Template],
     np.testing.assert_allclose(d[fin], ref_d[fin], rtol=0, atol=1e-12)
     ref_r = np.einsum("pd,pd->p", y - prep.samples[sel], prep.normals[sel])
     np.testing.assert_allclose(r, ref_r, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["l_bracket", "cube_40mm"])
+def test_sorted_candidate_scan_finds_the_same_nearest_samples(lib: dict[str, Template], name: str) -> None:
+    # the fit's exact correspondences (cells' candidates sorted by distance to the centre, scan cut short)
+    prep = prepare(lib[name])
+    y, ny = _queries(prep, 5)
+    r_ref, d_ref, _ = kernels.correspond_many(y, ny, True, prep.samples, prep.normals, prep.grid, prep.kd)
+    pose = np.eye(4)[None]
+    args = (pose, np.ones(1), y, ny, True, np.inf, prep.samples, prep.normals, prep.grid, prep.kd, candidates(prep))
+    r, d = kernels.correspond_posed(*args)
+    np.testing.assert_array_equal(d[0], d_ref)
+    np.testing.assert_array_equal(r[0], r_ref)
 
 
 def test_grid_correspondences_follow_the_distance_grid(lib: dict[str, Template]) -> None:
