@@ -502,20 +502,25 @@ def level_candidates(candidates: list[GraspCandidate], within_rad: float) -> lis
     out: list[GraspCandidate] = []
     if not candidates:
         return out
-    down = np.array([0.0, 0.0, -1.0])
-    lo = np.cos(within_rad)
-    hi = np.cos(np.deg2rad(0.5))
-    cos_all = np.stack([c.world_from_tcp[:3, 2] for c in candidates]) @ down
-    for j in np.flatnonzero((cos_all >= lo) & (cos_all < hi)):
+    poses = np.stack([c.world_from_tcp for c in candidates])
+    cos_a = -poses[:, 2, 2]  # the approach's component along straight down
+    rows = np.flatnonzero((cos_a >= np.cos(within_rad)) & (cos_a < np.cos(np.deg2rad(0.5))))
+    if len(rows) == 0:
+        return out
+    sel = poses[rows]
+    # turn about approach x down (unit), through the TCP, by the angle between them (Rodrigues, all at once)
+    axis = np.stack([-sel[:, 1, 2], sel[:, 0, 2], np.zeros(len(rows))], axis=1)
+    axis /= np.linalg.norm(axis, axis=1)[:, None]
+    angle = np.arccos(np.clip(cos_a[rows], -1.0, 1.0))
+    x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
+    zero = np.zeros(len(rows))
+    k = np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], 1)
+    turn = np.repeat(np.eye(4)[None], len(rows), axis=0)
+    turn[:, :3, :3] = np.eye(3) + np.sin(angle)[:, None, None] * k + (1.0 - np.cos(angle))[:, None, None] * (k @ k)
+    turn[:, :3, 3] = sel[:, :3, 3] - np.einsum("nij,nj->ni", turn[:, :3, :3], sel[:, :3, 3])
+    level = turn @ sel
+    for j, pose in zip(rows, level, strict=True):
         c = candidates[int(j)]
-        pose = c.world_from_tcp
-        cos_a = float(pose[:3, 2] @ down)
-        if not lo <= cos_a < hi:  # the same test on the same product (the batch above only preselects)
-            continue
-        axis = np.cross(pose[:3, 2], down)
-        axis /= np.linalg.norm(axis)
-        turn = _about(axis, pose[:3, 3], float(np.arccos(np.clip(cos_a, -1.0, 1.0))))
-        level = turn @ pose
         out.append(
             GraspCandidate(
                 c.target,
@@ -523,7 +528,7 @@ def level_candidates(candidates: list[GraspCandidate], within_rad: float) -> lis
                 f"{c.grasp_id}@level",
                 c.source,
                 c.scheme,
-                level,
+                pose,
                 c.opening_m,
                 c.approach_m,
                 c.retreat_m,
