@@ -1100,30 +1100,95 @@ def fpfh_histograms(points, normals, idx, dist, valid, n_bins):  # type: ignore[
 
 @njit(cache=True, nogil=True)
 def knn_points(pts, k):  # type: ignore[no-untyped-def]
-    """(N, k) indices of each point's k nearest points of pts (N, 3), itself included, nearest first (brute
-    force: faster than building a KD-tree for a few hundred points)."""
+    """(N, k) indices of each point's k nearest points of pts (N, 3), itself included, nearest first; equal
+    distances keep the lower index (the k smallest (distance, index) pairs).
+
+    Exact search on a cubic cell grid (about 2 points per cell over the bounding box): shells of cells around
+    the point's cell until the next shell lies farther than the k-th distance (faster than a KD-tree or brute
+    force for a few hundred points).
+    """
     n = pts.shape[0]
     k = min(k, n)
     out = np.empty((n, k), dtype=np.int64)
+    if k == 0:
+        return out
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for u in range(3):
+        lo[u] = pts[0, u]
+        hi[u] = pts[0, u]
+    for i in range(n):
+        for u in range(3):
+            lo[u] = min(lo[u], pts[i, u])
+            hi[u] = max(hi[u], pts[i, u])
+    ext = max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2])
+    per_axis = max(1, int(round((n / 2.0) ** (1.0 / 3.0))))
+    h = ext / per_axis if ext > 0.0 else 1.0
+    dims = np.empty(3, dtype=np.int64)
+    for u in range(3):
+        dims[u] = min(int((hi[u] - lo[u]) / h) + 1, 4 * per_axis)
+    cell_of = np.empty(n, dtype=np.int64)
+    ci = np.empty((n, 3), dtype=np.int64)
+    for i in range(n):
+        for u in range(3):
+            ci[i, u] = min(int((pts[i, u] - lo[u]) / h), dims[u] - 1)
+        cell_of[i] = (ci[i, 0] * dims[1] + ci[i, 1]) * dims[2] + ci[i, 2]
+    n_cells = dims[0] * dims[1] * dims[2]
+    start = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        start[cell_of[i] + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    members = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        members[fill[cell_of[i]]] = i
+        fill[cell_of[i]] += 1
     bd = np.empty(k)
     bi = np.empty(k, dtype=np.int64)
+    max_r = max(dims[0], dims[1], dims[2])
     for i in range(n):
         for j in range(k):
             bd[j] = np.inf
-            bi[j] = 0
-        for m in range(n):
-            e0 = pts[i, 0] - pts[m, 0]
-            e1 = pts[i, 1] - pts[m, 1]
-            e2 = pts[i, 2] - pts[m, 2]
-            dd = e0 * e0 + e1 * e1 + e2 * e2
-            if dd < bd[k - 1]:
-                j = k - 1
-                while j > 0 and bd[j - 1] > dd:
-                    bd[j] = bd[j - 1]
-                    bi[j] = bi[j - 1]
-                    j -= 1
-                bd[j] = dd
-                bi[j] = m
+            bi[j] = n
+        c0, c1, c2 = ci[i, 0], ci[i, 1], ci[i, 2]
+        # distance from the point to its own cell's faces (the shell bound grows by h per shell)
+        margin = np.inf
+        for u in range(3):
+            off = pts[i, u] - (lo[u] + ci[i, u] * h)
+            margin = min(margin, off, h - off)
+        margin = max(margin, 0.0)
+        for r in range(max_r + 1):
+            if r > 0:
+                reach = margin + (r - 1) * h  # every point in shell r lies at least this far
+                if reach * reach > bd[k - 1]:
+                    break
+            for a in range(max(c0 - r, 0), min(c0 + r, dims[0] - 1) + 1):
+                for b in range(max(c1 - r, 0), min(c1 + r, dims[1] - 1) + 1):
+                    on_a = a == c0 - r or a == c0 + r
+                    on_b = b == c1 - r or b == c1 + r
+                    step = 1 if (on_a or on_b) else 2 * r
+                    cz = max(c2 - r, 0)
+                    while cz <= min(c2 + r, dims[2] - 1):
+                        if not (on_a or on_b or cz == c2 - r or cz == c2 + r):
+                            cz = c2 + r  # inside the shell: already visited
+                            continue
+                        c = (a * dims[1] + b) * dims[2] + cz
+                        for q in range(start[c], start[c + 1]):
+                            m = members[q]
+                            e0 = pts[i, 0] - pts[m, 0]
+                            e1 = pts[i, 1] - pts[m, 1]
+                            e2 = pts[i, 2] - pts[m, 2]
+                            dd = e0 * e0 + e1 * e1 + e2 * e2
+                            if dd < bd[k - 1] or (dd == bd[k - 1] and m < bi[k - 1]):
+                                j = k - 1
+                                while j > 0 and (bd[j - 1] > dd or (bd[j - 1] == dd and bi[j - 1] > m)):
+                                    bd[j] = bd[j - 1]
+                                    bi[j] = bi[j - 1]
+                                    j -= 1
+                                bd[j] = dd
+                                bi[j] = m
+                        cz += step if r > 0 else 1
         for j in range(k):
             out[i, j] = bi[j]
     return out
