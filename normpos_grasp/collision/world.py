@@ -701,11 +701,18 @@ class CollisionWorld:
         radii = np.concatenate(movers_r)
         clear = np.ones(k, dtype=bool)
         if len(phase.lo):
-            gap = np.maximum(phase.lo[None, None] - centres[:, :, None], 0.0) + np.maximum(
-                centres[:, :, None] - phase.hi[None, None], 0.0
-            )  # (K, M, E, 3)
-            d2 = np.einsum("kmei,kmei->kme", gap, gap)
-            clear &= ~np.any(d2 <= (radii * radii)[None, :, None], axis=(1, 2))
+            # only elements whose AABB meets the box around all of a configuration's spheres (1 nm of slack) can
+            # touch one of them: the sphere tests run on those (configuration, element) pairs
+            box_lo = (centres - radii[None, :, None]).min(axis=1) - 1e-9  # (K, 3)
+            box_hi = (centres + radii[None, :, None]).max(axis=1) + 1e-9
+            kk, ee = np.nonzero(
+                np.all(phase.lo[None] <= box_hi[:, None], axis=2) & np.all(phase.hi[None] >= box_lo[:, None], axis=2)
+            )
+            if len(kk):
+                c = centres[kk]  # (P, M, 3)
+                gap = np.maximum(phase.lo[ee][:, None] - c, 0.0) + np.maximum(c - phase.hi[ee][:, None], 0.0)
+                d2 = np.einsum("pmi,pmi->pm", gap, gap)
+                clear[kk[np.any(d2 <= (radii * radii)[None], axis=1)]] = False
         r = self._arm.radii
         d = np.linalg.norm(arm_c[:, :, None] - arm_c[:, None], axis=-1) - (r[:, None] + r[None])
         clear &= ~np.any((d <= 0) & self._arm.pair_mask[None], axis=(1, 2))
