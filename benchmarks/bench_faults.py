@@ -55,7 +55,8 @@ def main() -> None:
                 for case in cases:
                     try:
                         r = campaign.run(case)
-                    except DriverTimeout as exc:  # the harness could not set the case up (e.g. a start-up too slow)
+                    except (DriverTimeout, OSError) as exc:  # the harness could not set the case up (a slow start-up
+                        # or the controller's dashboard not answering the harness's own query): counted, not measured
                         print(f"  {controller:9s} {case:18s} not run: {exc}", flush=True)
                         continue
                     results.append(r)

@@ -171,7 +171,8 @@ class _Trace:
 
 
 def _emu_state(host: str) -> dict[str, str]:
-    reply = dashboard_request(host, "emu state")
+    # the harness's own query, not a measured figure: a loaded machine may take more than the usual 2 s to answer
+    reply = dashboard_request(host, "emu state", timeout_s=10.0)
     return dict(part.split("=", 1) for part in reply.split()[2:] if "=" in part)
 
 
@@ -438,7 +439,12 @@ class Campaign:
             result.stop_budget_s = self.stale_state_s + 0.1
         plan, _ = self._plan_for("movej")
         proc = self._start(self._cli("execute", str(plan), "--robot", self.host, "--execute"))
-        self._wait_moving(proc)
+        try:
+            self._wait_moving(proc)
+        except BaseException:  # the case cannot start: end its client so the next case starts from a quiet arm
+            proc.kill()
+            proc.communicate(timeout=10.0)
+            raise
         time.sleep(0.3)
         emu = self._ensure_emulator()
         t_fault = time.monotonic()
