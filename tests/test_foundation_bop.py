@@ -13,14 +13,11 @@ from normpos_grasp.errors import DatasetError, InputError
 from normpos_grasp.geometry import make_pose, random_rotation
 from normpos_grasp.io.bop import BopGT, BopScene, BopSceneWriter, load_mesh, read_models, read_split, write_models
 
-LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
-needs_lmo = pytest.mark.skipif(not LMO.is_dir(), reason=f"LM-O sample not found at {LMO} (CI clones shared/ beside)")
 K = np.array([[600.0, 0, 79.5], [0, 600.0, 59.5], [0, 0, 1]])
 
 
-@needs_lmo
-def test_lmo_scene_camera_depth_gt() -> None:
-    scenes = read_split(LMO / "test")
+def test_lmo_scene_camera_depth_gt(lmo_sample: Path) -> None:
+    scenes = read_split(lmo_sample / "test")
     assert [s.scene_id for s in scenes] == [2]
     scene = scenes[0]
     assert scene.frame_ids == [3]
@@ -45,9 +42,8 @@ def test_lmo_scene_camera_depth_gt() -> None:
         scene.camera(4)
 
 
-@needs_lmo
-def test_lmo_models() -> None:
-    models = read_models(LMO / "models")
+def test_lmo_models(lmo_sample: Path) -> None:
+    models = read_models(lmo_sample / "models")
     can = models[5]
     assert can.diameter_m == pytest.approx(0.2014035855)
     assert np.allclose(can.extents_m, [0.1007916, 0.1817958, 0.1937340], atol=1e-6)
@@ -179,6 +175,7 @@ def test_reader_errors(tmp_path: Path) -> None:
 
 def test_models_round_trip(tmp_path: Path) -> None:
     import trimesh
+
     box = trimesh.creation.box(extents=[0.04, 0.06, 0.1])
     box.apply_translation([0.01, 0.0, 0.0])
     flip = make_pose(np.diag([-1.0, -1.0, 1.0]), [0.02, 0.0, 0.0])

@@ -31,8 +31,6 @@ from normpos_grasp.measure.measure import (
 from normpos_grasp.perception.gt import GroundTruthSegmenter
 from normpos_grasp.records.instance import Instance
 
-LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
-needs_lmo = pytest.mark.skipif(not LMO.is_dir(), reason=f"LM-O sample not found at {LMO} (CI clones shared/ beside)")
 K = np.array([[300.0, 0, 79.5], [0, 300.0, 59.5], [0, 0, 1]])
 
 
@@ -228,15 +226,14 @@ def test_json_summary_and_gt_segmenter_from_written_scene(tmp_path: Path) -> Non
         GroundTruthSegmenter(scene).segment(RGBDFrame(loaded.rgb, loaded.depth_m, loaded.camera, im_id=5))
 
 
-@needs_lmo
-def test_lmo_can_points_lie_on_the_posed_model() -> None:
-    scene = BopScene(LMO / "test" / "000002")
+def test_lmo_can_points_lie_on_the_posed_model(lmo_sample: Path) -> None:
+    scene = BopScene(lmo_sample / "test" / "000002")
     frame = scene.load_frame(3)
     instances = GroundTruthSegmenter(scene).segment(frame)
     assert [i.label for i in instances] == ["obj_000005"]  # only the can's model ships with the sample
     (npos,) = measure_instances(frame, instances)
     assert npos.frame == "camera" and npos.n_points > 3500
-    mesh = load_mesh(read_models(LMO / "models")[5])
+    mesh = load_mesh(read_models(lmo_sample / "models")[5])
     gt = scene.gt(3)[1]
     posed = mesh.copy()
     posed.apply_transform(gt.camera_from_object)
@@ -249,11 +246,10 @@ def test_lmo_can_points_lie_on_the_posed_model() -> None:
     assert npos.centroid[2] < centre[2]
 
 
-@needs_lmo
-def test_visible_mask_excludes_occluders() -> None:
-    scene = BopScene(LMO / "test" / "000002")
+def test_visible_mask_excludes_occluders(lmo_sample: Path) -> None:
+    scene = BopScene(lmo_sample / "test" / "000002")
     frame = scene.load_frame(3)
-    mesh = load_mesh(read_models(LMO / "models")[5])
+    mesh = load_mesh(read_models(lmo_sample / "models")[5])
     rend = render(frame.camera, [(mesh, scene.gt(3)[1].camera_from_object)])
     vis = visible_mask(rend.depth_m, frame.depth_m)
     assert vis.sum() < rend.mask(0).sum() and vis.sum() > 0.9 * rend.mask(0).sum()
@@ -261,13 +257,12 @@ def test_visible_mask_excludes_occluders() -> None:
         visible_mask(rend.depth_m, frame.depth_m[1:])
 
 
-@needs_lmo
-def test_measure_cli_on_lmo(tmp_path: Path) -> None:
+def test_measure_cli_on_lmo(lmo_sample: Path, tmp_path: Path) -> None:
     import cv2
 
     from normpos_grasp.cli.main import main
 
-    assert main(["measure", str(LMO / "test"), "--out", str(tmp_path), "--segmenter", "gt"]) == 0
+    assert main(["measure", str(lmo_sample / "test"), "--out", str(tmp_path), "--segmenter", "gt"]) == 0
     data = json.loads((tmp_path / "000002" / "000003.json").read_text())
     assert data["scene_id"] == 2 and data["im_id"] == 3 and data["frame"] == "camera"
     (obj,) = data["objects"]
@@ -287,23 +282,24 @@ def test_measure_cli_on_lmo(tmp_path: Path) -> None:
     cloud = read_ply(tmp_path / "000002" / obj["points_file"])
     assert len(cloud.points) == obj["n_points"]
     assert main(["measure", str(tmp_path / "missing"), "--out", str(tmp_path)]) == 2
-    assert main(["measure", str(LMO / "test"), "--out", str(tmp_path), "--frames", "99"]) == 2
+    assert main(["measure", str(lmo_sample / "test"), "--out", str(tmp_path), "--frames", "99"]) == 2
 
 
-@needs_lmo
-def test_measure_cli_other_segmenters(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_measure_cli_other_segmenters(lmo_sample: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import importlib.util
     import sys
 
     from normpos_grasp.cli.main import main
 
     if importlib.util.find_spec("normpos_grasp.perception.depth_segmenter") is not None:
-        assert main(["measure", str(LMO / "test" / "000002"), "--out", str(tmp_path), "--segmenter", "depth"]) == 0
+        assert (
+            main(["measure", str(lmo_sample / "test" / "000002"), "--out", str(tmp_path), "--segmenter", "depth"]) == 0
+        )
         data = json.loads((tmp_path / "000002" / "000003.json").read_text())
         assert len(data["objects"]) >= 1 and all(o["n_points"] > 0 for o in data["objects"])
     # a segmenter module that is not installed gives exit code 2 and a clear error, not a traceback
     monkeypatch.setitem(sys.modules, "normpos_grasp.perception.depth_segmenter", None)
-    assert main(["measure", str(LMO / "test"), "--out", str(tmp_path), "--segmenter", "depth"]) == 2
+    assert main(["measure", str(lmo_sample / "test"), "--out", str(tmp_path), "--segmenter", "depth"]) == 2
 
 
 def test_fill_region_must_match() -> None:

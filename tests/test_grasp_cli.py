@@ -9,7 +9,6 @@ import pytest
 from normpos_grasp.cli.main import build_parser, main
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "cells"
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
 
 
 def test_plan_command_is_registered() -> None:
@@ -43,15 +42,24 @@ def test_not_a_scene_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert "not a BOP scene" in capsys.readouterr().err
 
 
-def test_camera_without_extrinsics_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    if not DATA.is_dir():
-        pytest.skip(f"shared data not found at {DATA}")
+def test_camera_without_extrinsics_exits_2(
+    lmo_sample: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     cell = (EXAMPLES / "ur10e_conveyor_suction.yaml").read_text(encoding="utf-8")
-    cell = cell.replace("place:", f"templates: {DATA / 'models'}\nplace:")
+    cell = cell.replace("place:", f"templates: {lmo_sample / 'models'}\nplace:")
     path = tmp_path / "cell.yaml"
     path.write_text(cell, encoding="utf-8")
     rc = main(
-        ["plan", str(DATA / "test" / "000002"), "--cell", str(path), "--im-id", "3", "--out", str(tmp_path / "p.json")]
+        [
+            "plan",
+            str(lmo_sample / "test" / "000002"),
+            "--cell",
+            str(path),
+            "--im-id",
+            "3",
+            "--out",
+            str(tmp_path / "p.json"),
+        ]
     )
     assert rc == 2
     assert "world_from_camera" in capsys.readouterr().err

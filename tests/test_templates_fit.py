@@ -28,7 +28,6 @@ from normpos_grasp.templates.library import load_library
 from normpos_grasp.templates.synthetic import render_views
 
 REPO = Path(__file__).resolve().parents[1]
-LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
 SEEDS = {"cube_40mm": 11, "l_bracket": 12, "cylinder": 13, "blob": 14}
 CAM = Camera(np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]]), 640, 480)
 
@@ -197,20 +196,19 @@ def test_control_points_kabsch_enumerates_symmetry(lib: dict[str, Template]) -> 
         fit_control_points(t, {"corner_ppp": np.zeros(3)})
 
 
-@pytest.mark.skipif(not LMO.exists(), reason="shared LM-O sample not found next to the repository")
-def test_lmo_real_frame_can() -> None:
+def test_lmo_real_frame_can(lmo_sample: Path) -> None:
     import cv2
 
     from normpos_grasp.camera.render import render, visible_mask
     from normpos_grasp.templates.fit import estimate_normals
     from normpos_grasp.templates.synthetic import make_normpos
 
-    t = load_library(LMO / "models").by_obj_id(5)
-    cams = json.loads((LMO / "test/000002/scene_camera.json").read_text())["3"]
-    raw = cv2.imread(str(LMO / "test/000002/depth/000003.png"), cv2.IMREAD_UNCHANGED)
+    t = load_library(lmo_sample / "models").by_obj_id(5)
+    cams = json.loads((lmo_sample / "test/000002/scene_camera.json").read_text())["3"]
+    raw = cv2.imread(str(lmo_sample / "test/000002/depth/000003.png"), cv2.IMREAD_UNCHANGED)
     depth = raw.astype(float) * cams["depth_scale"] / 1000.0
     cam = Camera(np.array(cams["cam_K"]).reshape(3, 3), depth.shape[1], depth.shape[0])
-    entry = next(g for g in json.loads((LMO / "test/000002/scene_gt.json").read_text())["3"] if g["obj_id"] == 5)
+    entry = next(g for g in json.loads((lmo_sample / "test/000002/scene_gt.json").read_text())["3"] if g["obj_id"] == 5)
     u, _, vt = np.linalg.svd(np.array(entry["cam_R_m2c"]).reshape(3, 3))
     gt = make_pose(u @ vt, np.array(entry["cam_t_m2c"]) / 1000.0)
     # GT-rendered visible mask (BOP visibility test) until this project's segmenters land

@@ -19,7 +19,6 @@ from normpos_grasp.templates.library import (
 from normpos_grasp.templates.mesh_check import check_mesh
 
 REPO = Path(__file__).resolve().parents[1]
-LMO = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmo_sample"
 
 
 def _write(folder: Path, text: str, mesh: trimesh.Trimesh, name: str = "mesh.stl") -> Path:
@@ -117,9 +116,8 @@ def test_mesh_repair_reports_and_fixes(caplog: pytest.LogCaptureFixture) -> None
         check_mesh(trimesh.Trimesh(np.zeros((3, 3)), [[0, 1, 2]], process=False), "flat")
 
 
-@pytest.mark.skipif(not LMO.exists(), reason="shared LM-O sample not found next to the repository")
-def test_bop_models_folder_loads_as_library() -> None:
-    lib = load_library(LMO / "models")
+def test_bop_models_folder_loads_as_library(lmo_sample: Path) -> None:
+    lib = load_library(lmo_sample / "models")
     t = lib.by_obj_id(5)
     assert t.name == "obj_000005" and t.units == "mm"
     assert t.diameter_m == pytest.approx(0.20140, abs=2e-4)  # models_info.json: 201.40 mm
