@@ -17,9 +17,3 @@ def lmo_sample() -> Path:
     if not LMO_SAMPLE.is_dir():
         pytest.skip(f"LM-O sample not found at {LMO_SAMPLE} (CI clones shared/ beside the repository)")
     return LMO_SAMPLE
-
-
-@pytest.fixture(scope="session")
-def example_cells() -> Path:
-    """The repository's example cell YAMLs (examples/cells/)."""
-    return ROOT / "examples" / "cells"
