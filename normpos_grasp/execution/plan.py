@@ -181,11 +181,7 @@ def check_plan(parsed: ParsedPlan, limits: SafetyLimits) -> SafetyLimits:
             )
     elif parsed.flange_from_tcp is not None:
         limits = replace(limits, flange_from_tcp=parsed.flange_from_tcp)
-    limits.check_joints(parsed.q, "waypoint")
-    for i in range(len(parsed.q) - 1):
-        limits.check_segment(parsed.q[i], parsed.q[i + 1], f"segment {parsed.names[i]}->{parsed.names[i + 1]}")
-    if parsed.traj_t is not None and parsed.traj_q is not None:
-        limits.check_trajectory(parsed.traj_t, parsed.traj_q)
+    limits.check_path(parsed.names, parsed.q, parsed.traj_t, parsed.traj_q)  # the planner runs the same judge
     return limits
 
 

@@ -3,7 +3,11 @@
 home -> entry -> pre_grasp -> grasp -> lift -> retreat -> pre_place -> place -> post_place. Approach and retreat
 are Cartesian straight lines (dense IK on one analytic branch); the transfers (home -> entry, retreat -> pre_place)
 are joint-space motions, straight when collision-free, otherwise RRT-Connect. The whole path is time-parameterised
-within the cell's caps. No feasible grasp is a result (status 'no_feasible_grasp' with reason counts), not an error.
+within the cell's caps. Before a plan is returned, the cell's judge (`cell.limits.SafetyLimits.from_cell(cell)
+.check_path`, the check `execution.plan.check_plan` runs) passes its waypoints, the straight joint segments between
+them and its timed samples; a plan it refuses is a rejected grasp (reason 'path_cell_<check>' or, for a place
+branch, 'place_cell_<check>') and the next branch or grasp is tried. No feasible grasp is a result (status
+'no_feasible_grasp' with reason counts), not an error.
 """
 
 from __future__ import annotations
@@ -18,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.cell.config import CellConfig, PlaceSpec
+from normpos_grasp.cell.limits import SafetyLimits
 from normpos_grasp.collision.world import CollisionWorld
-from normpos_grasp.errors import PlanningError
+from normpos_grasp.errors import PlanningError, SafetyViolation
 from normpos_grasp.geometry.transforms import invert_pose
 from normpos_grasp.grasp.candidates import CandidateOptions, candidates_for_object, primitive_template
 from normpos_grasp.kinematics.arm import ArmModel
@@ -239,8 +244,10 @@ def plan_from_candidates(
     t0 = time.perf_counter()
     chosen: Evaluation | None = None
     waypoints: tuple[Waypoint, ...] = ()
-    pieces: list[PathPiece] = []
+    trajectory: Trajectory | None = None
     place_name = ""
+    limits = SafetyLimits.from_cell(cell)  # the judge execution uses (check_plan)
+    timing["timing"] = 0.0
     ranked = list(result.ranked)
     attempts = 0
     # the same grasps reached with joint 6 turned the quicker way (a half turn where the tool looks the same)
@@ -258,15 +265,15 @@ def plan_from_candidates(
                 )
             try:
                 try:
-                    waypoints, pieces, place_name = _build_path(
-                        path_ev, targets[ev.candidate.target], world, arm, cell, home, opts
+                    waypoints, trajectory, place_name = _judged_path(
+                        path_ev, targets[ev.candidate.target], world, arm, cell, home, opts, limits, timing
                     )
                 except PlanningError:
                     if path_ev is ev:
                         raise
-                    path_ev = ev  # no path with joint 6 turned: the evaluation's own angles
-                    waypoints, pieces, place_name = _build_path(
-                        ev, targets[ev.candidate.target], world, arm, cell, home, opts
+                    path_ev = ev  # no path (or none the cell allows) with joint 6 turned: the evaluation's angles
+                    waypoints, trajectory, place_name = _judged_path(
+                        ev, targets[ev.candidate.target], world, arm, cell, home, opts, limits, timing
                     )
             except PlanningError as exc:
                 reason = getattr(exc, "reason", "path")
@@ -306,12 +313,9 @@ def plan_from_candidates(
             break
     if counts.get("not_evaluated", 1) == 0:
         del counts["not_evaluated"]
-    timing["path"] = (time.perf_counter() - t0) * 1e3
-    trajectory = None
-    if chosen is not None:
-        t0 = time.perf_counter()
-        trajectory = _time_pieces(pieces, arm, cell, opts.timing)
-        timing["timing"] = (time.perf_counter() - t0) * 1e3
+    timing["path"] = (time.perf_counter() - t0) * 1e3 - timing["timing"]
+    if chosen is None:
+        trajectory = None
     timing["total"] = (time.perf_counter() - t_start) * 1e3
     n_feasible = sum(1 for e in evaluations if e.feasible)
     return PickPlan(
@@ -330,6 +334,40 @@ def plan_from_candidates(
         place=place_name,
         cell=cell.record(),
     )
+
+
+def _judged_path(
+    ev: Evaluation,
+    target: Target,
+    world: CollisionWorld,
+    arm: ArmModel,
+    cell: CellConfig,
+    home: FloatArray,
+    opts: PlanOptions,
+    limits: SafetyLimits,
+    timing: dict[str, float],
+) -> tuple[tuple[Waypoint, ...], Trajectory, str]:
+    """`_build_path`, timed (`_time_pieces`; its ms added to timing['timing']) and judged by the cell as execution
+    judges plan.json (`limits.check_path` on the waypoints and the samples as plan.json rounds them); a plan the
+    cell refuses raises _PathRejected with reason 'path_cell_<check>'."""
+    waypoints, pieces, place_name = _build_path(ev, target, world, arm, cell, home, opts, limits)
+    t0 = time.perf_counter()
+    trajectory = _time_pieces(pieces, arm, cell, opts.timing)
+    timing["timing"] += (time.perf_counter() - t0) * 1e3
+    # the values plan.json carries (PickPlan.to_json rounds t to 1 us and q to 1e-9 rad): the judge sees those
+    t = np.array([round(float(v), 6) for v in trajectory.t])
+    q = np.array([[round(float(v), 9) for v in row] for row in trajectory.q])
+    try:
+        limits.check_path([w.name for w in waypoints], np.stack([w.q for w in waypoints]), t, q)
+    except SafetyViolation as exc:
+        raise _PathRejected(f"the cell refuses the plan: {exc}", _cell_reason("path", exc)) from exc
+    return waypoints, trajectory, place_name
+
+
+def _cell_reason(stage: str, exc: SafetyViolation) -> str:
+    """Rejection reason for a plan the cell's judge refused: '<stage>_cell_<check>' (check: the limit it broke)."""
+    check = exc.detail.get("check", "input") if isinstance(exc.detail, dict) else "input"
+    return f"{stage}_cell_{check}"
 
 
 def _time_pieces(pieces: list[PathPiece], arm: ArmModel, cell: CellConfig, options: TimingOptions) -> Trajectory:
@@ -456,11 +494,12 @@ def _place_motion(
     opts: PlanOptions,
     caps: tuple[FloatArray, FloatArray, FloatArray],
     turn_ok: bool,
+    limits: SafetyLimits,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, PlaceSpec]:
     """Straight pre-place -> place (held) and place -> post-place (released) lines through the place pose, or an
     equivalent one (`branches.place_poses`, with opts.quickest_branches; `turn_ok`: the tool looks the same turned
     half a turn), on the branch with the quickest estimated motion from `q_from` (caps: `timing.joint_caps`) that
-    admits them."""
+    admits them and whose waypoints and straight joint segments from `q_from` the cell's judge (`limits`) allows."""
     place_pose = _place_pose(place, tcp_from_object, target, opts.place_drop_m)
     verts = np.asarray(target.mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
     poses = [place_pose]
@@ -479,6 +518,16 @@ def _place_motion(
             )
         except _PathRejected as exc:
             last = exc
+            continue
+        try:  # execution judges the straight joint segments retreat -> pre_place -> place -> post_place
+            limits.check_path(
+                ("retreat", "pre_place", "place", "post_place"),
+                np.stack([q_from, seg_place[0], seg_place[-1], seg_post[-1]]),
+            )
+        except SafetyViolation as exc:
+            last = _PathRejected(
+                f"place {place.name!r}: the cell refuses this branch: {exc}", _cell_reason("place", exc)
+            )
             continue
         placing = seg_place[:-1][~world.configs_clear(seg_place[:-1], free_held.opening)]
         if not all(free_held(q) for q in placing):
@@ -502,6 +551,7 @@ def _build_path(
     cell: CellConfig,
     home: FloatArray,
     opts: PlanOptions,
+    limits: SafetyLimits,
 ) -> tuple[tuple[Waypoint, ...], list[PathPiece], str]:
     """Waypoints and the pieces of the path (lines, and joint edges with the collision test a blend through their
     ends must pass) of one evaluated grasp, and the place used; _PathRejected when some part has no path."""
@@ -559,7 +609,7 @@ def _build_path(
                 found = _place_motion(
                     place, target, tcp_from_object, seg_exit[-1], world, arm, tcp_from_flange, free_held, opts,
                     joint_caps(cell.motion.joint_velocity, cell.motion.joint_acceleration, opts.timing),
-                    half_turn_symmetric(tool),
+                    half_turn_symmetric(tool), limits,
                 )  # fmt: skip
                 place_err = None
                 break
