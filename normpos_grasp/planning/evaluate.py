@@ -97,12 +97,13 @@ class EvaluationResult:
         return len(self.ranked)
 
 
-def five_poses(c: GraspCandidate, entry_z: float, lift_m: float, below_tcp_m: float, clearance_m: float) -> FloatArray:
+def five_poses(c: GraspCandidate, entry_z: float, lift_m: float, below_tcp_m: float) -> FloatArray:
     """(5, 4, 4) world_from_tcp at entry, pre-grasp, grasp, lift and exit for candidate `c`.
 
     Pre-grasp backs off `approach_m` along the approach axis; lift rises `lift_m` in world z; entry and exit are the
-    pre-grasp and lift poses raised to `entry_z` (exit also by `below_tcp_m` + clearance, the held object's depth
-    below the TCP, so it clears the rim)."""
+    pre-grasp and lift poses raised to `entry_z` (the rim + the cell's entry clearance, m), the exit also by
+    `below_tcp_m`, the held object's depth below the TCP (m): the held object's lowest point leaves the bin at the
+    same clearance above the rim as the empty tool's TCP enters it."""
     g = c.world_from_tcp
     a = g[:3, 2]
     pre = g.copy()
@@ -112,12 +113,12 @@ def five_poses(c: GraspCandidate, entry_z: float, lift_m: float, below_tcp_m: fl
     entry = pre.copy()
     entry[2, 3] = max(pre[2, 3], entry_z)
     exit_ = lift.copy()
-    exit_[2, 3] = max(lift[2, 3], entry_z + below_tcp_m + clearance_m if np.isfinite(entry_z) else lift[2, 3])
+    exit_[2, 3] = max(lift[2, 3], entry_z + below_tcp_m if np.isfinite(entry_z) else lift[2, 3])
     return np.stack([entry, pre, g, lift, exit_])
 
 
 def five_poses_batch(
-    g: FloatArray, approach_m: FloatArray, entry_z: float, lift_m: float, below_tcp_m: FloatArray, clearance_m: float
+    g: FloatArray, approach_m: FloatArray, entry_z: float, lift_m: float, below_tcp_m: FloatArray
 ) -> FloatArray:
     """(N, 5, 4, 4) five poses for grasp poses g (N, 4, 4); vectorised `five_poses`."""
     n = len(g)
@@ -128,7 +129,7 @@ def five_poses_batch(
         out[:, 0, :3, 3] = out[:, 1, :3, 3]
         out[:, 0, 2, 3] = np.maximum(out[:, 1, 2, 3], entry_z)
         out[:, 4, :3, 3] = out[:, 3, :3, 3]
-        out[:, 4, 2, 3] = np.maximum(out[:, 3, 2, 3], entry_z + below_tcp_m + clearance_m)
+        out[:, 4, 2, 3] = np.maximum(out[:, 3, 2, 3], entry_z + below_tcp_m)
     else:
         out[:, 0] = out[:, 1]
         out[:, 4] = out[:, 3]
@@ -148,7 +149,11 @@ def evaluate_candidates(
     workspace: tuple[FloatArray, FloatArray],
     options: EvaluationOptions | None = None,
 ) -> EvaluationResult:
-    """Evaluate `candidates` (for objects `targets`, each also a world element of the same name) at five poses."""
+    """Evaluate `candidates` (for objects `targets`, each also a world element of the same name) at five poses.
+
+    entry_z: the bin entry height, m: the rim + `entry_clearance_m` (the cell's `entry_z`), so the held part leaves
+    the bin with its lowest point `entry_clearance_m` above the rim, as the empty tool enters (`five_poses`)."""
+    del entry_clearance_m  # held in entry_z; the exit adds only the held part's depth below the TCP
     opts = options or EvaluationOptions()
     tool = world.tool
     if tool is None:
@@ -174,7 +179,7 @@ def evaluate_candidates(
     )
     target_idx = np.array([c.target for c in candidates])
     below = np.maximum(g[:, 2, 3] - lowest[target_idx], 0.0)
-    poses = five_poses_batch(g, np.array([c.approach_m for c in candidates]), entry_z, lift_m, below, entry_clearance_m)
+    poses = five_poses_batch(g, np.array([c.approach_m for c in candidates]), entry_z, lift_m, below)
 
     def reject(i: int, reason: str, pose: str = "") -> None:
         verdict[i] = Evaluation(candidates[i], False, reason, pose, poses[i])
@@ -219,7 +224,6 @@ def evaluate_candidates(
                 entry_z,
                 lift_m,
                 np.maximum(g[rows, 2, 3] - lowest[target_idx[rows]], 0.0),
-                entry_clearance_m,
             )
         for p_idx in (2, 1, 0):
             hits = world.tool_box_hits(poses[idx, p_idx], openings[idx])
