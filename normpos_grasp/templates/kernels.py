@@ -827,6 +827,24 @@ def fit_stats(r, d, scale, thr, spacing, beside_spacings, beside_thr, neighbours
     return ratio, rmse, n_ok / p
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _window_depths(depth, u, v, rad, z):  # type: ignore[no-untyped-def]
+    """Within +-rad pixels of (u, v) (clamped to the image): the nearest valid depth and the smallest |depth - z|,
+    metres (inf where no pixel has a valid reading)."""
+    hgt, wid = depth.shape
+    nearest = np.inf
+    closest = np.inf
+    for dv in range(-rad, rad + 1):
+        vv = min(max(v + dv, 0), hgt - 1)
+        for du in range(-rad, rad + 1):
+            uu = min(max(u + du, 0), wid - 1)
+            val = depth[vv, uu]
+            if val > 0 and np.isfinite(val):
+                nearest = min(nearest, val)
+                closest = min(closest, abs(val - z))
+    return nearest, closest
+
+
 @njit(cache=True, nogil=True)
 def depth_evidence(pv, nv, uv, depth, tol, rad):  # type: ignore[no-untyped-def]
     """Depth-image tests of visible template points pv (V, 3) (camera frame) with normals nv (V, 3), pixels uv (V, 2).
@@ -850,16 +868,7 @@ def depth_evidence(pv, nv, uv, depth, tol, rad):  # type: ignore[no-untyped-def]
         grazing = abs(nv[i, 0] * pv[i, 0] + nv[i, 1] * pv[i, 1] + nv[i, 2] * z) < 0.3 * plen
         meas = depth[v, u]
         occluded = meas > 0 and np.isfinite(meas) and meas - z < -tol
-        nearest = np.inf
-        closest = np.inf
-        for dv in range(-rad, rad + 1):
-            vv = min(max(v + dv, 0), hgt - 1)
-            for du in range(-rad, rad + 1):
-                uu = min(max(u + du, 0), wid - 1)
-                val = depth[vv, uu]
-                if val > 0 and np.isfinite(val):
-                    nearest = min(nearest, val)
-                    closest = min(closest, abs(val - z))
+        nearest, closest = _window_depths(depth, u, v, rad, z)
         if occluded:
             n_occ += 1
         else:
@@ -1290,16 +1299,7 @@ def depth_scores(samples, normals, cfo, scale, spacing, fx, fy, cx, cy, depth, t
         meas = depth[v, u]
         valid = meas > 0 and np.isfinite(meas)
         occluded = valid and meas - z < -tol
-        nearest = np.inf
-        closest = np.inf
-        for dv in range(-rad, rad + 1):
-            vv = min(max(v + dv, 0), hgt - 1)
-            for du in range(-rad, rad + 1):
-                uu = min(max(u + du, 0), wid - 1)
-                val = depth[vv, uu]
-                if val > 0 and np.isfinite(val):
-                    nearest = min(nearest, val)
-                    closest = min(closest, abs(val - z))
+        nearest, closest = _window_depths(depth, u, v, rad, z)
         if occluded:
             n_occ += 1
         else:
