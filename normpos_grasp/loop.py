@@ -184,7 +184,7 @@ class SyntheticBinSource:
                 plan.chosen.candidate.world_from_tcp,
                 max(plan.chosen.candidate.opening_m, 1e-3),
                 # lift out of the bin (as the plan does) before the sideways shake, so the hand clears the rim
-                PhysicsOptions(lift_to_z_m=float(self.cell.entry_z) + PhysicsOptions().approach_m),
+                PhysicsOptions(lift_to_z_m=float(self._entry_z(plan)) + PhysicsOptions().approach_m),
             )
             outcome = result.outcome
             if outcome != "held":
@@ -198,6 +198,10 @@ class SyntheticBinSource:
         if outcome in ("held", "not_checked"):
             self.layout = remove_parts(self.layout, [part])
         return outcome
+
+    def _entry_z(self, plan: PickPlan) -> float:
+        """The bin entry height of the bin `plan` picks from (the cell's first bin for a one-bin plan), m."""
+        return float(self.cell.picking_from(plan.bin).entry_z if plan.bin else self.cell.entry_z)
 
 
 class _SyntheticTruth:
@@ -337,6 +341,11 @@ def run_cell_loop(
     exception in the worker stops the arm (the driver's stop request, or stop() at rest) and leaves the loop with
     that exception; nothing is sent from its plan. Not combined with `watch` yet.
 
+    Several bins (`cell.bins`, docs/cells.md "Several bins"): each turn plans from the bin after the one picked
+    last (`plan_pick` goes on to the next bins when that one has no part or no feasible pick); a bin the frame
+    shows no part in is logged once as empty ("bin 'left' empty") and the loop goes on with the others; it stops
+    when every bin is empty (the plan then has nothing to pick).
+
     A wrist camera (`cell.wrist_camera`, docs/cells.md): each turn first moves the arm to capture pose 0
     (`planning.capture`: a collision-free joint path, checked against the safety limits and run like a plan, or only
     checked in a dry run), takes the frame there with world_from_camera = world_from_base @ base_from_flange(q) @
@@ -357,6 +366,7 @@ def run_cell_loop(
     records: list[PickRecord] = []
     cell_now = cell  # the cell as filled so far: used pattern slots gone, the parts left there static boxes
     ahead: _Lookahead | None = None  # the next turn, perceived and planned while the arm placed (overlap)
+    reported_empty: set[str] = set()  # bins logged as empty (a bin seen holding a part again leaves the set)
 
     def emit(record: PickRecord) -> None:
         record = replace(record, captured=frame, start_q=cycle_q)  # this turn's frame and start joints
@@ -383,8 +393,8 @@ def run_cell_loop(
                 frame, result, cycle_q = ahead.frame, ahead.result, ahead.start_q  # the plan starts where the arm is
                 timings = {"capture": ahead.capture_ms, **result.timings_ms, "overlap_wait": ahead.wait_ms}
             else:
-                views = 1 if cell.wrist_camera is None else len(cell.wrist_camera.capture_q)
-                for view in range(views):  # a wrist camera tries its capture poses in turn
+                views = _capture_order(cell_now)
+                for view in views:  # a wrist camera tries its capture poses in turn
                     t0 = time.perf_counter()
                     if cell.wrist_camera is not None:
                         frame = wrist_capture(cell_now, source, driver if execute else None, start_q, limits, view)
@@ -399,20 +409,26 @@ def run_cell_loop(
                     timings = {"capture": t_capture, **result.timings_ms}
                     if result.plan is not None and result.plan.status == "ok":
                         break
-                    if view + 1 < views:
-                        log.info(
-                            "pick %d: no feasible grasp from capture pose %d: trying pose %d", index + 1, view, view + 1
-                        )
+                    if view != views[-1]:
+                        log.info("pick %d: no feasible grasp from capture pose %d: trying the next", index + 1, view)
             ahead = None
             if on_plan is not None:
                 on_plan(result)
             plan = result.plan
+            empty_now = set(plan.bins_empty) if plan is not None else set()
+            for name in sorted(empty_now - reported_empty):
+                log.info("pick %d: bin %r empty", index + 1, name)
+            reported_empty = empty_now
             if plan is None or plan.status != "ok":
                 doc = plan.to_json() if plan is not None else None
+                if plan is not None and len(cell.bins) > 1 and len(plan.bins_empty) == len(cell.bins):
+                    log.info("every bin of cell %r is empty: loop stopped", cell.name)
                 emit(PickRecord(index, result, "no_feasible_grasp", "not_checked", doc, None, timings))
                 break
             plan_json = plan.to_json()
             cell_next = with_placed(cell_now, plan)  # the cell once this part is down (the next turn plans in it)
+            if plan.bin:  # several bins: the next turn starts at the bin after this one
+                cell_next = cell_next.picking_from(cell.next_bin(plan.bin))
             look: _Lookahead | None = None
             if overlap:
                 plan_next = index + 1 < max_picks and bool(cell_next.places)
@@ -635,6 +651,16 @@ def wrist_capture(
         frame.scene_id,
         frame.im_id,
     )
+
+
+def _capture_order(cell: CellConfig) -> list[int]:
+    """The capture poses a turn tries, in order: [0] for a fixed camera; a wrist camera's poses with the one that
+    sees the bin picked from first (its `capture:`) in front."""
+    if cell.wrist_camera is None:
+        return [0]
+    order = list(range(len(cell.wrist_camera.capture_q)))
+    first = cell.bin.capture if cell.bin is not None else None
+    return order if first is None else [first, *(v for v in order if v != first)]
 
 
 # the move to a capture pose: no gripper action, the arm ends at the capture joints

@@ -51,6 +51,7 @@ _TOP_KEYS = (
     "floor_z",
     "table",
     "bin",
+    "bins",
     "conveyor",
     "fixtures",
     "place",
@@ -67,7 +68,8 @@ MAX_CAPTURE_POSES = 16
 _POSE_KEYS = ("xyz", "rpy_deg", "rpy")
 _BOX_KEYS = ("pose", "size")
 _FIXTURE_KEYS = ("name", "pose", "size")
-_BIN_KEYS = ("pose", "inner_size", "wall_m")
+_BIN_KEYS = ("name", "pose", "inner_size", "wall_m", "place", "capture")
+MAX_BINS = 16
 _PLACE_KEYS = ("name", "world_from_tcp", "approach_m", "pattern", "align_part")
 _MOTION_KEYS = ("joint_velocity", "joint_acceleration", "tcp_speed_m_s", "tcp_acceleration_m_s2", "workspace")
 _WORKSPACE_KEYS = ("min", "max")
@@ -116,29 +118,65 @@ class BoxSpec:
 @dataclass(frozen=True, eq=False)
 class BinSpec:
     """An open bin: `world_from_bin` (4, 4) at the centre of the inner floor (z up), `inner_size` (3,) inner
-    length, width and wall height, `wall_m` wall and floor thickness, m."""
+    length, width and wall height, `wall_m` wall and floor thickness, m.
+
+    name: 'bin' for the one-bin spelling (`bin:`), else its name in `bins:`; places: names of the `place:` entries
+    its parts go to (a pattern entry stands for all of its slots; empty: every place); capture: the wrist camera's
+    capture pose that sees it (an index of `camera.capture`; None: any)."""
 
     world_from_bin: FloatArray
     inner_size: FloatArray
     wall_m: float = 0.01
+    name: str = "bin"
+    places: tuple[str, ...] = ()
+    capture: int | None = None
 
     def boxes(self) -> list[BoxSpec]:
-        """Floor and four walls as boxes."""
+        """Floor and four walls as boxes, named 'bin/floor', 'bin/wall_x+', ... for the bin named 'bin', else
+        'bin/<name>/floor', ..."""
         lx, ly, h = (float(v) for v in self.inner_size)
         w = self.wall_m
         parts = {
-            "bin/floor": ((0.0, 0.0, -w / 2), (lx + 2 * w, ly + 2 * w, w)),
-            "bin/wall_x+": ((lx / 2 + w / 2, 0.0, h / 2), (w, ly + 2 * w, h)),
-            "bin/wall_x-": ((-lx / 2 - w / 2, 0.0, h / 2), (w, ly + 2 * w, h)),
-            "bin/wall_y+": ((0.0, ly / 2 + w / 2, h / 2), (lx, w, h)),
-            "bin/wall_y-": ((0.0, -ly / 2 - w / 2, h / 2), (lx, w, h)),
+            "floor": ((0.0, 0.0, -w / 2), (lx + 2 * w, ly + 2 * w, w)),
+            "wall_x+": ((lx / 2 + w / 2, 0.0, h / 2), (w, ly + 2 * w, h)),
+            "wall_x-": ((-lx / 2 - w / 2, 0.0, h / 2), (w, ly + 2 * w, h)),
+            "wall_y+": ((0.0, ly / 2 + w / 2, h / 2), (lx, w, h)),
+            "wall_y-": ((0.0, -ly / 2 - w / 2, h / 2), (lx, w, h)),
         }
+        prefix = "bin" if self.name == "bin" else f"bin/{self.name}"
         out = []
         for name, (centre, size) in parts.items():
             pose = np.eye(4)
             pose[:3, 3] = centre
-            out.append(BoxSpec(name, self.world_from_bin @ pose, np.asarray(size, dtype=np.float64)))
+            out.append(BoxSpec(f"{prefix}/{name}", self.world_from_bin @ pose, np.asarray(size, dtype=np.float64)))
         return out
+
+    def contains(self, point: Any, above_m: float = 0.1, tol_m: float = 0.01) -> bool:
+        """Whether world point (3,) lies over the bin's inner floor (within `tol_m` of its footprint), between the
+        floor (less `tol_m`) and `above_m` over the rim (a part sticking out of a full bin is still in it), m."""
+        return bool(self.contains_points(np.asarray(point, dtype=np.float64).reshape(1, 3), above_m, tol_m)[0])
+
+    def contains_points(self, points: FloatArray, above_m: float = 0.1, tol_m: float = 0.01) -> Any:
+        """`contains` for world points (N, 3): a bool array (N,)."""
+        inv = np.linalg.inv(np.asarray(self.world_from_bin, dtype=np.float64))
+        local = np.asarray(points, dtype=np.float64) @ inv[:3, :3].T + inv[:3, 3]
+        lx, ly, h = (float(v) for v in self.inner_size)
+        return (
+            (np.abs(local[:, 0]) <= lx / 2 + tol_m)
+            & (np.abs(local[:, 1]) <= ly / 2 + tol_m)
+            & (local[:, 2] >= -tol_m)
+            & (local[:, 2] <= h + above_m)
+        )
+
+    def outer_bounds(self) -> tuple[FloatArray, FloatArray]:
+        """World axis-aligned bounds (lo (3,), hi (3,)) of the bin's floor and walls, m."""
+        corners = []
+        for box in self.boxes():
+            half = np.asarray(box.size) / 2
+            signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+            corners.append((signs * half) @ box.world_from_box[:3, :3].T + box.world_from_box[:3, 3])
+        pts = np.concatenate(corners)
+        return pts.min(axis=0), pts.max(axis=0)
 
     @property
     def rim_z(self) -> float:
@@ -203,6 +241,12 @@ class PlaceSpec:
     approach_m: float = 0.1
     align_part: bool = False
     single_use: bool = False
+    group: str = ""  # the `place:` entry it comes from (a pattern's name for its slots; '': its own name)
+
+    @property
+    def entry(self) -> str:
+        """The name of the `place:` entry this pose comes from (what a bin's `place:` list names)."""
+        return self.group or self.name
 
 
 @dataclass(frozen=True, eq=False)
@@ -226,7 +270,10 @@ class CellConfig:
     """A validated cell: robot, tool, static geometry, place poses, template library and limits.
 
     robot_serial: the controller's serial number when the file names one (execution compares it);
-    floor_z: world height of the floor when the file gives one, m."""
+    floor_z: world height of the floor when the file gives one, m.
+    bins: every bin of the cell (`bins:`, or the one `bin:`), their walls among `static_boxes`; bin: the bin a plan
+    picks from first (`plan_pick` tries the others after it, in turn): the one bin, or the first of `bins` unless
+    `picking_from` chose another. A cell built with only `bin` gets bins = (bin,)."""
 
     name: str
     robot_model: str
@@ -250,6 +297,64 @@ class CellConfig:
     source_sha256: str = ""  # of the file it was read from ('' for a cell built from a mapping)
     watch: WatchSpec | None = None  # the `watch:` section (None: no zone watch, no drift check)
     wrist_camera: WristCamera | None = None  # `camera: {mount: wrist, ...}` (world_from_camera is then None)
+    bins: tuple[BinSpec, ...] = ()
+
+    def __post_init__(self) -> None:
+        bins = tuple(self.bins)
+        if not bins and self.bin is not None:
+            bins = (self.bin,)
+        if bins and self.bin is None:
+            object.__setattr__(self, "bin", bins[0])
+        if self.bin is not None and all(b.name != self.bin.name for b in bins):
+            raise CellConfigError(f"bin {self.bin.name!r} is not one of the cell's bins {[b.name for b in bins]}")
+        object.__setattr__(self, "bins", bins)
+
+    def bin_named(self, name: str) -> BinSpec:
+        """The bin called `name`; InputError naming the cell's bins otherwise."""
+        for b in self.bins:
+            if b.name == name:
+                return b
+        raise InputError(f"cell {self.name!r} has no bin {name!r}; its bins: {', '.join(b.name for b in self.bins)}")
+
+    def picking_from(self, name: str) -> CellConfig:
+        """This cell with bin `name` as the one plans pick from first (the others keep their walls and turns)."""
+        chosen = self.bin_named(name)
+        return self if self.bin is chosen else replace(self, bin=chosen)
+
+    def next_bin(self, name: str) -> str:
+        """The name of the bin after `name` in `bins` (the first after the last)."""
+        names = [b.name for b in self.bins]
+        return names[(names.index(name) + 1) % len(names)] if name in names else names[0]
+
+    def places_for(self, bin_spec: BinSpec | None) -> tuple[PlaceSpec, ...]:
+        """The places (slots still free) the parts of `bin_spec` go to: those of its `place:` list, else all."""
+        if bin_spec is None or not bin_spec.places:
+            return self.places
+        return tuple(p for p in self.places if p.entry in bin_spec.places)
+
+    def bins_region(self, above_m: float = 0.15) -> tuple[FloatArray, FloatArray] | None:
+        """(world_from_box (4, 4), size (3,)) of the box holding every bin's interior up to `above_m` over its rim,
+        in the first bin's orientation (for one bin: its interior), m; None without a bin."""
+        if not self.bins:
+            return None
+        frame = np.asarray(self.bins[0].world_from_bin, dtype=np.float64)
+        inv = np.linalg.inv(frame)
+        signs = np.array(np.meshgrid([-0.5, 0.5], [-0.5, 0.5], [0.0, 1.0])).reshape(3, -1).T
+        corners = []
+        for b in self.bins:
+            lx, ly, h = (float(v) for v in b.inner_size)
+            local = signs * np.array([lx, ly, h + above_m])
+            world = local @ b.world_from_bin[:3, :3].T + b.world_from_bin[:3, 3]
+            corners.append(world @ inv[:3, :3].T + inv[:3, 3])
+        pts = np.concatenate(corners)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        centre = np.eye(4)
+        centre[:3, 3] = (lo + hi) / 2
+        return frame @ centre, hi - lo
+
+    def bin_of(self, point: Any) -> BinSpec | None:
+        """The bin whose interior holds world point (3,) (`BinSpec.contains`), None when none does."""
+        return next((b for b in self.bins if b.contains(point)), None)
 
     def record(self) -> dict[str, str]:
         """What a plan records of the cell it was made in: name, file path and the file's SHA-256."""
@@ -267,9 +372,9 @@ class CellConfig:
     @property
     def camera_floor_z(self) -> float | None:
         """Lowest plausible camera height, m: above `floor_z` and above the lowest surface parts rest on (table
-        top, bin floor, conveyor belt), since a camera below all of them cannot see a part; None when the cell
+        top, bin floors, conveyor belt), since a camera below all of them cannot see a part; None when the cell
         gives neither."""
-        return _camera_floor(self.floor_z, self.static_boxes, self.bin)
+        return _camera_floor(self.floor_z, self.static_boxes, self.bins)
 
     def check_camera(self, world_from_camera: Any, name: str = "world_from_camera") -> FloatArray:
         """Validate extrinsics against this cell (camera.model.check_world_from_camera with `camera_floor_z`, and
@@ -281,7 +386,7 @@ class CellConfig:
 
 
 # packaged in normpos_grasp/examples/cells
-BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction", "ur5e_wrist_camera")
+BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction", "ur5e_wrist_camera", "ur5e_two_bins")
 
 
 def resolve_cell(name_or_path: str | Path) -> CellConfig:
@@ -607,10 +712,86 @@ def _check_outside_workspace(world_from_camera: FloatArray, motion: MotionLimits
         )
 
 
-def _camera_floor(floor_z: float | None, boxes: Iterable[BoxSpec], bin_spec: BinSpec | None) -> float | None:
+def _bin(v: Any, path: str, name: str) -> BinSpec:
+    """One bin mapping {name, pose, inner_size, wall_m, place, capture} at `path` ('bin' or 'bins[i]')."""
+    b = _mapping(v, path, _BIN_KEYS)
+    places = b.get("place", [])
+    if isinstance(places, str):
+        places = [places]
+    if not isinstance(places, list) or not places and "place" in b:
+        raise _err(_join(path, "place"), f"expected a place name or a non-empty list of them, got {_short(places)}")
+    capture = b.get("capture")
+    if capture is not None and (isinstance(capture, bool) or not isinstance(capture, int) or capture < 0):
+        raise _err(
+            _join(path, "capture"), f"expected the index of a camera.capture pose (0, 1, ...), got {_short(capture)}"
+        )
+    return BinSpec(
+        parse_pose(_req(b, "pose", path), _join(path, "pose")),
+        _lengths(_req(b, "inner_size", path), _join(path, "inner_size"), 3, positive=True),
+        _length(b.get("wall_m", 0.01), _join(path, "wall_m"), 1e-3, 0.2),
+        _text(b["name"], _join(path, "name")) if "name" in b else name,
+        tuple(_text(p, f"{_join(path, 'place')}[{i}]") for i, p in enumerate(places)),
+        capture,
+    )
+
+
+def _bins(data: dict[str, Any]) -> list[BinSpec]:
+    """`bin:` (one bin, named 'bin' unless it says) or `bins:` (a list of named bins), never both; names unique and
+    not 'bin' twice, and no two bins' floors and walls overlapping."""
+    if "bin" in data and "bins" in data:
+        raise _err("bins", "give `bin:` (one bin) or `bins:` (a list of named bins), not both")
+    if "bin" in data:
+        return [_bin(data["bin"], "bin", "bin")]
+    if "bins" not in data:
+        return []
+    raw = data["bins"]
+    if not isinstance(raw, list) or not 1 <= len(raw) <= MAX_BINS:
+        raise _err(
+            "bins", f"expected a list of 1 to {MAX_BINS} bins {{name, pose, inner_size, ...}}, got {_short(raw)}"
+        )
+    bins = []
+    for i, v in enumerate(raw):
+        if isinstance(v, dict) and "name" not in v:
+            raise _err(f"bins[{i}].name", "required key is missing: every bin of a list has a name")
+        bins.append(_bin(v, f"bins[{i}]", ""))
+    names = [b.name for b in bins]
+    if len(set(names)) != len(names):
+        raise _err("bins", f"bin names must be unique, got {names}")
+    for i, a in enumerate(bins):
+        lo_a, hi_a = a.outer_bounds()
+        for j in range(i):
+            lo_b, hi_b = bins[j].outer_bounds()
+            depth = np.minimum(hi_a, hi_b) - np.maximum(lo_a, lo_b)
+            if np.all(depth > 1e-6):
+                raise _err(
+                    f"bins[{i}]",
+                    f"bin {a.name!r} overlaps bin {bins[j].name!r} by {np.round(depth, 3).tolist()} m: move one",
+                )
+    return bins
+
+
+def _check_bin_links(bins: list[BinSpec], places: list[PlaceSpec], wrist: WristCamera | None, key: str) -> None:
+    """Each bin's `place:` names entries of `place:`; its `capture:` is a capture pose of a wrist camera."""
+    entries = list(dict.fromkeys(p.entry for p in places))
+    for i, b in enumerate(bins):
+        path = key if key == "bin" else f"bins[{i}]"
+        for k, name in enumerate(b.places):
+            if name not in entries:
+                close = get_close_matches(name, entries, n=1, cutoff=0.75)
+                hint = f"did you mean {close[0]!r}? " if close else ""
+                raise _err(f"{path}.place[{k}]", f"no place named {name!r}; {hint}places: {', '.join(entries)}")
+        if b.capture is not None:
+            if wrist is None:
+                raise _err(f"{path}.capture", "a capture pose needs a wrist camera (camera: {mount: wrist, ...})")
+            if b.capture >= len(wrist.capture_q):
+                raise _err(
+                    f"{path}.capture", f"is {b.capture}, but camera.capture holds {len(wrist.capture_q)} pose(s)"
+                )
+
+
+def _camera_floor(floor_z: float | None, boxes: Iterable[BoxSpec], bins: Iterable[BinSpec]) -> float | None:
     supports = [float(b.world_from_box[2, 3] + b.size[2] / 2) for b in boxes if b.name in ("table", "conveyor")]
-    if bin_spec is not None:
-        supports.append(float(bin_spec.world_from_bin[2, 3]))
+    supports.extend(float(b.world_from_bin[2, 3]) for b in bins)
     levels = ([] if floor_z is None else [floor_z]) + ([min(supports)] if supports else [])
     return max(levels) if levels else None
 
@@ -761,14 +942,8 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     boxes: list[BoxSpec] = []
     if "table" in data:
         boxes.append(_box(data["table"], "table", "table"))
-    bin_spec = None
-    if "bin" in data:
-        b = _mapping(data["bin"], "bin", _BIN_KEYS)
-        bin_spec = BinSpec(
-            parse_pose(_req(b, "pose", "bin"), "bin.pose"),
-            _lengths(_req(b, "inner_size", "bin"), "bin.inner_size", 3, positive=True),
-            _length(b.get("wall_m", 0.01), "bin.wall_m", 1e-3, 0.2),
-        )
+    bins = _bins(data)
+    for bin_spec in bins:
         boxes.extend(bin_spec.boxes())
     if "conveyor" in data:
         boxes.append(_box(data["conveyor"], "conveyor", "conveyor"))
@@ -788,7 +963,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     if mount not in CAMERA_MOUNTS:
         raise _err("camera.mount", f"expected one of {', '.join(CAMERA_MOUNTS)}, got {_short(mount)}")
     if mount == "wrist":
-        floor = _camera_floor(floor_z, boxes, bin_spec)
+        floor = _camera_floor(floor_z, boxes, bins)
         wrist = _wrist_camera(data["camera"], base_dir, model, world_from_base, tool.flange_from_tcp, limits, floor)
         tool = wrist.mounted_on(tool)
         statics = [(b.name, b.world_from_box, b.size) for b in boxes]
@@ -808,7 +983,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
             pose = parse_pose(camera["world_from_camera"], "camera.world_from_camera")
             try:
                 world_from_camera = check_world_from_camera(
-                    pose, "camera.world_from_camera", floor_z_m=_camera_floor(floor_z, boxes, bin_spec)
+                    pose, "camera.world_from_camera", floor_z_m=_camera_floor(floor_z, boxes, bins)
                 )
                 _check_outside_workspace(world_from_camera, limits, "camera.world_from_camera")
             except InputError as exc:
@@ -837,9 +1012,11 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         )
         for slot_name, slot_pose in slots:
             _check_outside_bounds(slot_pose, limits, f"place[{i}].pattern" if "pattern" in pd else f"place[{i}]")
-            places.append(PlaceSpec(slot_name, slot_pose, approach, align, "pattern" in pd))
+            group = place_name if "pattern" in pd else ""
+            places.append(PlaceSpec(slot_name, slot_pose, approach, align, "pattern" in pd, group))
     if len({p.name for p in places}) != len(places):
         raise _err("place", f"place names must be unique, got {[p.name for p in places]}")
+    _check_bin_links(bins, places, wrist, "bins" if "bins" in data else "bin")
 
     templates_path = None
     if "templates" in data:
@@ -854,7 +1031,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         tool=tool,
         world_from_camera=world_from_camera,
         static_boxes=tuple(boxes),
-        bin=bin_spec,
+        bin=bins[0] if bins else None,
         places=tuple(places),
         templates_path=templates_path,
         motion=limits,
@@ -871,4 +1048,5 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         ),
         watch=_watch(data["watch"], base_dir) if "watch" in data else None,
         wrist_camera=wrist,
+        bins=tuple(bins),
     )

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -125,11 +126,16 @@ def support_plane_world(cell: CellConfig) -> FloatArray | None:
 
 
 def estimate_depth_bias(
-    camera: Camera, depth_m: FloatArray, plane_camera: FloatArray, options: DepthBiasOptions | None = None
+    camera: Camera,
+    depth_m: FloatArray,
+    plane_camera: FloatArray,
+    options: DepthBiasOptions | None = None,
+    region: Any = None,
 ) -> DepthBiasEstimate:
     """Depth bias of one frame from the known support plane `plane_camera` ((4,), n . x + d = 0, camera frame).
 
-    depth_m: (H, W) z-depth, metres (0 = no reading). See the module docstring for the method.
+    depth_m: (H, W) z-depth, metres (0 = no reading); region: (H, W) bool, only these pixels may be plane pixels
+    (None: all). See the module docstring for the method.
     """
     opts = options or DepthBiasOptions()
     depth = np.asarray(depth_m, dtype=np.float64)
@@ -149,6 +155,8 @@ def estimate_depth_bias(
     z = depth[::s, ::s]
     rays = pixel_rays(camera)[::s, ::s]
     ok = np.isfinite(z) & (z > 0)
+    if region is not None:
+        ok &= np.asarray(region, dtype=bool)[::s, ::s]
     xy = rays[ok]
     zm = z[ok]
     denom = xy @ n_exp[:2] + n_exp[2]
@@ -234,6 +242,26 @@ def correct_depth(depth_m: FloatArray, bias_m: float) -> FloatArray:
     return np.where(np.isfinite(d) & (d > 0), np.maximum(d - bias_m, 0.0), d)
 
 
+def _over_bin_floors(camera: Camera, depth_m: FloatArray, world_from_camera: FloatArray, cell: CellConfig) -> Any:
+    """(H, W) bool: the pixel's point lies over one of the cell's bin floors (walls excluded), from 5 cm below the
+    floor up to the rim."""
+    d = np.asarray(depth_m, dtype=np.float64)
+    cam = np.column_stack([(pixel_rays(camera) * d[..., None]).reshape(-1, 2), d.reshape(-1)])
+    world = cam @ world_from_camera[:3, :3].T + world_from_camera[:3, 3]
+    inside = np.zeros(len(world), dtype=bool)
+    for b in cell.bins:
+        inv = np.linalg.inv(np.asarray(b.world_from_bin, dtype=np.float64))
+        local = world @ inv[:3, :3].T + inv[:3, 3]
+        lx, ly, h = (float(v) for v in b.inner_size)
+        inside |= (
+            (np.abs(local[:, 0]) <= lx / 2)
+            & (np.abs(local[:, 1]) <= ly / 2)
+            & (local[:, 2] >= -0.05)
+            & (local[:, 2] <= h)
+        )
+    return inside.reshape(d.shape)
+
+
 def check_frame_depth(
     frame: RGBDFrame, cell: CellConfig, options: DepthBiasOptions | None = None
 ) -> tuple[RGBDFrame, DepthBiasEstimate | None]:
@@ -247,7 +275,10 @@ def check_frame_depth(
     plane_world = support_plane_world(cell)
     if wfc is None or plane_world is None:
         return frame, None
-    est = estimate_depth_bias(frame.camera, frame.depth_m, plane_in_camera(plane_world, wfc), opts)
+    region = None
+    if len(cell.bins) > 1:  # several bins: only pixels over a bin's floor (the table between them is another plane)
+        region = _over_bin_floors(frame.camera, frame.depth_m, wfc, cell)
+    est = estimate_depth_bias(frame.camera, frame.depth_m, plane_in_camera(plane_world, wfc), opts, region)
     bias = est.corrected
     if abs(bias) < opts.min_correct_m:
         return frame, est

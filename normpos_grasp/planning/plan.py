@@ -185,7 +185,12 @@ def plan_pick(
     options: PlanOptions | None = None,
     start_q: FloatArray | None = None,
 ) -> PickPlan:
-    """Choose an object and a grasp and plan the pick-and-place motion from `start_q` (default the cell's home)."""
+    """Choose an object and a grasp and plan the pick-and-place motion from `start_q` (default the cell's home).
+
+    A cell with several bins (`cell.bins`): every bin's walls are in the collision world and every perceived part an
+    obstacle; the parts are sorted into bins by their centre (`CellConfig.bin_of`; parts in no bin are not picked)
+    and the bins are tried in turn from `cell.bin` on (`_plan_bins`): a part of bin B gets the candidates, the bin
+    entry and exit height and the places of bin B only. The plan names its bin and the bins seen empty."""
     opts = options or PlanOptions()
     t_start = time.perf_counter()
     timing: dict[str, float] = {}
@@ -195,11 +200,12 @@ def plan_pick(
     world.set_tool(cell.tool)
     world.update()
     timing["world"] = (time.perf_counter() - t_start) * 1e3
+    home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
+    if len(cell.bins) > 1:
+        return _plan_bins(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start)
     t0 = time.perf_counter()
     candidates: list[GraspCandidate] = []
-    cand_opts = opts.candidates
-    if cell.tool.kind == "parallel" and cand_opts.synthesis.finger_tip_m == 0.0:
-        cand_opts = replace(cand_opts, synthesis=replace(cand_opts.synthesis, finger_tip_m=cell.tool.finger_depth_m))
+    cand_opts = _candidate_options(cell, opts)
     # symmetric parts are also offered jaws closing along the bin's walls (palm parallel to the nearest wall)
     walls = cell.bin.world_from_bin[:3, :2].T.copy() if cell.bin is not None else None
     for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
@@ -207,8 +213,98 @@ def plan_pick(
             candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
         )
     timing["candidates"] = (time.perf_counter() - t0) * 1e3
-    home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
     return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
+
+
+def _candidate_options(cell: CellConfig, opts: PlanOptions) -> CandidateOptions:
+    cand_opts = opts.candidates
+    if cell.tool.kind == "parallel" and cand_opts.synthesis.finger_tip_m == 0.0:
+        cand_opts = replace(cand_opts, synthesis=replace(cand_opts.synthesis, finger_tip_m=cell.tool.finger_depth_m))
+    return cand_opts
+
+
+def target_bins(cell: CellConfig, targets: Sequence[Target]) -> list[str]:
+    """The name of the bin holding each target's centre (its mesh bounds' centre), '' for a target in none."""
+    out = []
+    for t in targets:
+        lo, hi = np.asarray(t.mesh.bounds, dtype=np.float64)  # type: ignore[attr-defined]
+        pose = np.asarray(t.world_from_object, dtype=np.float64)
+        found = cell.bin_of(pose[:3, :3] @ ((lo + hi) / 2) + pose[:3, 3])
+        out.append("" if found is None else found.name)
+    return out
+
+
+def _plan_bins(
+    targets: list[Target],
+    templates: list[Any],
+    normpositions: Sequence[NormPosition],
+    world: CollisionWorld,
+    arm: ArmModel,
+    cell: CellConfig,
+    home: FloatArray,
+    opts: PlanOptions,
+    timing: dict[str, float],
+    t_start: float,
+) -> PickPlan:
+    """`plan_pick` in a cell with several bins: the bins in turn from `cell.bin` on, each with a part in it and a
+    free place of its own, planned as a one-bin cell (its walls for the candidates, its rim for the entry and exit,
+    its places) in the shared world; the first plan found is returned with `bin` and `bins_empty` set (a bin is
+    empty when neither a target nor a measured norm-position lies in it: a part whose fit was rejected still fills
+    its bin). Without one: status 'no_feasible_grasp' with every bin's evaluations and rejection counts."""
+    assert cell.bin is not None
+    names = [b.name for b in cell.bins]
+    start = names.index(cell.bin.name)
+    order = [cell.bins[(start + k) % len(names)] for k in range(len(names))]
+    held_in = target_bins(cell, targets)
+    seen = set(held_in) | {b.name for n in normpositions if (b := cell.bin_of(n.centroid)) is not None}
+    empty = tuple(b.name for b in cell.bins if b.name not in seen)
+    outside = [t.name for t, b in zip(targets, held_in, strict=True) if not b]
+    if outside:
+        logger.info("cell %r: %d part(s) lie in no bin and are not picked: %s", cell.name, len(outside), outside)
+    cand_opts = _candidate_options(cell, opts)
+    evaluations: list[Evaluation] = []
+    counts: Counter[str] = Counter()
+    n_feasible = 0
+    for b in order:
+        places = cell.places_for(b)
+        if b.name not in held_in or not places:
+            if not places and b.name in held_in:
+                logger.info("bin %r: every place its parts go to is filled", b.name)
+            continue
+        t0 = time.perf_counter()
+        walls = b.world_from_bin[:3, :2].T.copy()
+        candidates: list[GraspCandidate] = []
+        for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
+            if held_in[k] == b.name:
+                candidates.extend(
+                    candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
+                )
+        timing["candidates"] = timing.get("candidates", 0.0) + (time.perf_counter() - t0) * 1e3
+        one = replace(cell, bin=b, places=places)
+        plan = plan_from_candidates(candidates, targets, world, arm, one, home, opts, dict(timing), t_start)
+        if plan.status == "ok":
+            return replace(plan, bin=b.name, bins_empty=empty)
+        timing.update({k: v for k, v in plan.timing_ms.items() if k != "total"})
+        evaluations.extend(plan.evaluations)
+        counts.update(plan.counts)
+        n_feasible += plan.n_feasible
+    timing["total"] = (time.perf_counter() - t_start) * 1e3
+    return PickPlan(
+        status="no_feasible_grasp",
+        robot=cell.robot_model,
+        world_from_base=cell.world_from_base,
+        tool=cell.tool,
+        targets=tuple(targets),
+        chosen=None,
+        waypoints=(),
+        trajectory=None,
+        evaluations=tuple(evaluations),
+        counts=dict(counts),
+        n_feasible=n_feasible,
+        timing_ms=timing,
+        cell=cell.record(),
+        bins_empty=empty,
+    )
 
 
 def plan_from_candidates(

@@ -76,7 +76,9 @@ class PickPlan:
     """Result of `plan_pick`. status: 'ok' or 'no_feasible_grasp'. chosen: the evaluation of the grasp taken.
     counts: rejection counts by reason over all candidates. timing_ms: stage times.
     cell: the cell it was planned in ({name, path, sha256} of the cell file; empty for a cell built in memory):
-    `execute` judges the plan against that cell when no --cell is given."""
+    `execute` judges the plan against that cell when no --cell is given.
+    bin: the bin the part is taken from and bins_empty: the bins this frame showed no part in, in a cell with
+    several bins (plan.json then carries "bin" and "bins_empty"; '' and () in a one-bin cell)."""
 
     status: PlanStatus
     robot: str
@@ -92,6 +94,8 @@ class PickPlan:
     timing_ms: dict[str, float] = field(default_factory=dict)
     place: str = ""
     cell: dict[str, str] = field(default_factory=dict)
+    bin: str = ""
+    bins_empty: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         """The documented plan.json mapping (docs/grasping.md)."""
@@ -120,6 +124,9 @@ class PickPlan:
             },
             "timing_ms": {k: round(float(v), 3) for k, v in self.timing_ms.items()},
         }
+        if self.bin or self.bins_empty:
+            out["bin"] = self.bin
+            out["bins_empty"] = list(self.bins_empty)
         if self.chosen is not None:
             c = self.chosen.candidate
             t = self.targets[c.target]

@@ -1,7 +1,8 @@
 """Synthetic scenes placed in a cell: the bin of a cell YAML filled with parts, seen by the cell's camera.
 
 `compose_cell_scene` builds the scene around the origin with the cell's bin dimensions and moves it to the cell's
-bin pose, so the rendered frame, the ground truth and the cell's collision geometry share one world frame.
+bin pose, so the rendered frame, the ground truth and the cell's collision geometry share one world frame. A cell
+with several bins gets one such scene per bin (the parts shared out in turn), merged into one layout.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from normpos_grasp.typing import FloatArray
 
 
 def scene_options_for_cell(cell: CellConfig, count: int, seed: int, parts: Sequence[str] = ()) -> SceneOptions:
-    """SceneOptions whose bin matches the cell's bin (inner size, wall height and thickness)."""
+    """SceneOptions whose bin matches the cell's bin `cell.bin` (inner size, wall height and thickness)."""
     if cell.bin is None:
         raise InputError(f"cell {cell.name!r} has no bin; synthetic cell scenes need one")
     lx, ly, h = (float(v) for v in cell.bin.inner_size)
@@ -39,7 +40,7 @@ def scene_options_for_cell(cell: CellConfig, count: int, seed: int, parts: Seque
 
 
 def world_from_scene(cell: CellConfig) -> FloatArray:
-    """(4, 4) pose of the synthetic scene's frame (table top at z = 0, bin centred) in the cell's world."""
+    """(4, 4) pose of the synthetic scene's frame (table top at z = 0, bin `cell.bin` centred) in the cell's world."""
     if cell.bin is None:
         raise InputError(f"cell {cell.name!r} has no bin")
     pose = np.array(cell.bin.world_from_bin, dtype=np.float64)
@@ -74,10 +75,36 @@ def compose_cell_scene(
     library: list[Template] | None = None,
     parts: Sequence[str] = (),
 ) -> SceneLayout:
-    """Drop `count` parts into the cell's bin (physics-settled, seeded) and return the layout in the cell's world."""
-    options = scene_options_for_cell(cell, count, seed, parts)
-    layout = compose_scene(options, default_part_library() if library is None else library)
-    return transform_layout(layout, world_from_scene(cell))
+    """Drop `count` parts into the cell's bin (physics-settled, seeded) and return the layout in the cell's world.
+
+    Several bins: bin k gets parts k, k + n, ... of the `count` (seed + k for its scene); the merged layout keeps the
+    first scene's table and every bin's walls (the later bins' boxes renamed '<box>@<bin>')."""
+    lib = default_part_library() if library is None else library
+    if len(cell.bins) <= 1:
+        options = scene_options_for_cell(cell, count, seed, parts)
+        return transform_layout(compose_scene(options, lib), world_from_scene(cell))
+    layouts = []
+    for k, b in enumerate(cell.bins):
+        n = count // len(cell.bins) + (1 if k < count % len(cell.bins) else 0)
+        one = cell.picking_from(b.name)
+        options = scene_options_for_cell(one, max(n, 1), seed + k, parts)
+        layout = transform_layout(compose_scene(options, lib), world_from_scene(one))
+        if n == 0:
+            layout = remove_parts(layout, range(layout.n_parts))
+        layouts.append((b.name, layout))
+    first = layouts[0][1]
+    boxes = list(first.static_boxes)
+    for name, layout in layouts[1:]:
+        boxes.extend((f"{box}@{name}", pose, size) for box, pose, size in layout.static_boxes if box != "table")
+    return replace(
+        first,
+        templates=tuple(t for _, layout in layouts for t in layout.templates),
+        world_from_object=np.concatenate([layout.world_from_object.reshape(-1, 4, 4) for _, layout in layouts]),
+        static_boxes=tuple(boxes),
+        max_penetration_m=max(layout.max_penetration_m for _, layout in layouts),
+        settle_time_s=max(layout.settle_time_s for _, layout in layouts),
+        settled=all(layout.settled for _, layout in layouts),
+    )
 
 
 def cell_camera(cell: CellConfig, sensor: str = "d435", resolution: tuple[int, int] | None = None) -> Camera:

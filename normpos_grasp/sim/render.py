@@ -57,8 +57,9 @@ class Rendering:
     @property
     def visib_fractions(self) -> FloatArray:
         """(N,) visible / full pixel count per part (0 where the part is outside the image)."""
-        full = self.masks.reshape(len(self.masks), -1).sum(axis=1)
-        vis = self.masks_visible.reshape(len(self.masks), -1).sum(axis=1)
+        n = len(self.masks)  # an empty scene has (0, H, W) masks: reshape(0, -1) is ambiguous
+        full = self.masks.reshape(n, n and -1).sum(axis=1)
+        vis = self.masks_visible.reshape(n, n and -1).sum(axis=1)
         return np.where(full > 0, vis / np.maximum(full, 1), 0.0)
 
 
