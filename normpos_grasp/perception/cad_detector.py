@@ -64,8 +64,12 @@ class RegionOfInterest:
 
     @classmethod
     def from_cell(cls, cell: CellConfig, above_m: float = 0.15) -> RegionOfInterest:
-        """The bin interior (walls excluded, up to `above_m` over the rim) or the table top of `cell`."""
+        """The bin interior (walls excluded, up to `above_m` over the rim; several bins: the box around all their
+        interiors, `CellConfig.bins_region`) or the table top of `cell`."""
         plane = support_plane_world(cell)
+        region = cell.bins_region(above_m) if len(cell.bins) > 1 else None
+        if region is not None:
+            return cls(plane, region[0], region[1])
         if cell.bin is not None:
             lx, ly, h = (float(v) for v in cell.bin.inner_size)
             centre = np.eye(4)
