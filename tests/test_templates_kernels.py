@@ -223,3 +223,70 @@ def test_kth_smallest_matches_sort(values: list[float], seed: int) -> None:
     arr = np.array(values)
     k = seed % len(arr)
     assert kernels._kth_smallest(arr.copy(), len(arr), k) == np.sort(arr)[k]
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000))
+def test_voxel_downsample_matches_numpy_reference(seed: int) -> None:
+    from normpos_grasp.templates.features import voxel_downsample, voxel_downsample_reference
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 400))
+    pts = rng.normal(0.0, 0.05, (n, 3))
+    if seed % 3 == 0 and n > 1:  # repeated points: equal distances to the voxel centre, the lower index wins
+        pts[n // 2 :] = pts[: n - n // 2]
+    voxel = float(rng.choice([0.001, 0.004, 0.02, 1.0]))
+    out = voxel_downsample(pts, voxel)
+    np.testing.assert_array_equal(out, voxel_downsample_reference(pts, voxel))
+
+
+def test_radius_neighbours_match_kd_tree_query() -> None:
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    pts = rng.random((250, 3)) * 0.1
+    idx, dist, valid = kernels.radius_neighbours(pts, 13, 0.012)
+    ref_d, ref_i = cKDTree(pts).query(pts, k=13, distance_upper_bound=0.012)
+    ref_valid = np.isfinite(ref_d[:, 1:])
+    assert 0 < ref_valid.sum() < ref_valid.size  # some neighbourhoods cut by the radius
+    np.testing.assert_array_equal(valid, ref_valid)
+    np.testing.assert_array_equal(idx, np.where(ref_valid, ref_i[:, 1:], 0))
+    np.testing.assert_allclose(dist, np.where(ref_valid, ref_d[:, 1:], 1.0), rtol=0, atol=1e-15)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_mean_closest_matches_brute_force(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(0.0, 0.03, (int(rng.integers(1, 200)), 3))
+    b = rng.normal(0.0, 0.03, (int(rng.integers(1, 200)), 3))
+    if seed % 2:  # ties along the sort axis
+        a[:, 0] = np.round(a[:, 0], 2)
+        b[:, 0] = np.round(b[:, 0], 2)
+    ref = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1).min(1)).mean()
+    assert kernels.mean_closest(a, b) == pytest.approx(ref, rel=1e-12, abs=1e-15)
+
+
+def test_depth_scores_equal_the_separate_depth_tests(lib: dict[str, Template]) -> None:
+    """The fused score (its window scan stops at the first supporting depth) counts as visible_points,
+    project_pinhole, depth_evidence and silhouette_evidence do, on rendered frames and on poses off the data."""
+    prep = prepare(lib["l_bracket"])
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(4):
+        pose = make_pose(random_rotation(rng), [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.6])
+        view = render_views(CAM, [(lib["l_bracket"], pose)], rng)
+        depth = np.ascontiguousarray(view.depth_m, dtype=np.float64)
+        for shift in (0.0, 0.004, 0.02):
+            cfo = pose.copy()
+            cfo[:3, 3] += rng.normal(0.0, shift, 3)
+            tol = 0.004
+            cam = (CAM.fx, CAM.fy, CAM.cx, CAM.cy)
+            got = kernels.depth_scores(prep.samples, prep.normals, cfo, 1.0, prep.spacing, *cam, depth, tol, 2, 3 * tol)
+            pv, nv = kernels.visible_points(prep.samples, prep.normals, cfo, 1.0, prep.spacing)
+            uv = kernels.project_pinhole(pv, CAM.fx, CAM.fy, CAM.cx, CAM.cy)
+            ev = kernels.depth_evidence(pv, nv, uv, depth, tol, 2)
+            _, n_exp, n_front = kernels.silhouette_evidence(pv, uv, depth, tol, 2, 3 * tol)
+            assert got == (len(pv), *ev, n_exp, n_front)
+            checked += int(ev[0] > 0)
+    assert checked >= 4  # the supported (early-stopping) branch was exercised

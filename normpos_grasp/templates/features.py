@@ -13,7 +13,14 @@ K_NEIGHBOURS = 12
 
 
 def voxel_downsample(points: FloatArray, voxel: float) -> IntArray:
-    """Indices (V,) of one point per occupied voxel of size `voxel` (metres), the one nearest the voxel centre."""
+    """Indices (V,) of one point per occupied voxel of size `voxel` (metres), the one nearest the voxel centre
+    (lowest index among equal distances), ascending (compiled: `kernels.voxel_first`; `voxel_downsample_reference`
+    is the numpy form it is tested against)."""
+    return kernels.voxel_first(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3), float(voxel))
+
+
+def voxel_downsample_reference(points: FloatArray, voxel: float) -> IntArray:
+    """`voxel_downsample` in plain numpy."""
     key = np.floor(points / voxel).astype(np.int64)
     off = points / voxel - key - 0.5
     d = np.einsum("ij,ij->i", off, off)
@@ -27,25 +34,12 @@ def voxel_downsample(points: FloatArray, voxel: float) -> IntArray:
 def fpfh(points: FloatArray, normals: FloatArray, radius: float) -> FloatArray:
     """(N, 33) fast point feature histograms (Rusu 2009) of (N, 3) points with unit normals.
 
-    Neighbourhoods: up to 12 nearest neighbours within `radius` metres. Each histogram is normalised to sum 1
-    per angle (3 x 11 bins).
+    Neighbourhoods: up to 12 nearest neighbours within `radius` metres (`kernels.radius_neighbours`; the numpy
+    `fpfh_reference` takes them from a cKDTree). Each histogram is normalised to sum 1 per angle (3 x 11 bins).
     """
-    n = len(points)
-    k = min(K_NEIGHBOURS + 1, n)
-    tree = cKDTree(points)
-    dist, idx = tree.query(points, k=k, distance_upper_bound=radius)
-    dist = dist[:, 1:]
-    idx = idx[:, 1:]
-    valid = np.isfinite(dist) & (idx < n)
-    idx = np.where(valid, idx, 0)
-    return kernels.fpfh_histograms(
-        np.ascontiguousarray(points, dtype=np.float64),
-        np.ascontiguousarray(normals, dtype=np.float64),
-        np.ascontiguousarray(idx, dtype=np.int64),
-        np.ascontiguousarray(np.where(valid, dist, 1.0), dtype=np.float64),
-        np.ascontiguousarray(valid),
-        N_BINS,
-    )
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    idx, dist, valid = kernels.radius_neighbours(pts, min(K_NEIGHBOURS + 1, len(pts)), float(radius))
+    return kernels.fpfh_histograms(pts, np.ascontiguousarray(normals, dtype=np.float64), idx, dist, valid, N_BINS)
 
 
 def fpfh_reference(points: FloatArray, normals: FloatArray, radius: float) -> FloatArray:

@@ -845,6 +845,31 @@ def _window_depths(depth, u, v, rad, z):  # type: ignore[no-untyped-def]
     return nearest, closest
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _window_support(depth, u, v, rad, z, tol):  # type: ignore[no-untyped-def]
+    """`_window_depths` for a caller that only needs the nearest depth when no pixel of the window is within tol
+    of z: the scan (own pixel first) stops at the first such pixel and returns it with its |depth - z|. A depth
+    within tol of z lies less than 3 tol (the see-through limit) behind z, so that caller's counts are the same.
+    (u, v) must lie in the image."""
+    hgt, wid = depth.shape
+    val = depth[v, u]
+    if val > 0 and np.isfinite(val) and abs(val - z) <= tol:
+        return val, abs(val - z)
+    nearest = np.inf
+    closest = np.inf
+    for dv in range(-rad, rad + 1):
+        vv = min(max(v + dv, 0), hgt - 1)
+        for du in range(-rad, rad + 1):
+            uu = min(max(u + du, 0), wid - 1)
+            val = depth[vv, uu]
+            if val > 0 and np.isfinite(val):
+                if abs(val - z) <= tol:
+                    return val, abs(val - z)
+                nearest = min(nearest, val)
+                closest = min(closest, abs(val - z))
+    return nearest, closest
+
+
 @njit(cache=True, nogil=True)
 def depth_evidence(pv, nv, uv, depth, tol, rad):  # type: ignore[no-untyped-def]
     """Depth-image tests of visible template points pv (V, 3) (camera frame) with normals nv (V, 3), pixels uv (V, 2).
@@ -1008,20 +1033,49 @@ def project_pinhole(pv, fx, fy, cx, cy):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, nogil=True)
 def mean_closest(a, b):  # type: ignore[no-untyped-def]
-    """Mean over the points of a (N, 3) of the distance to the closest point of b (M, 3) (brute force)."""
+    """Mean over the points of a (N, 3) of the distance to the closest point of b (M, 3).
+
+    Exact: b sorted along x, each point's search runs outwards from its x position and stops once the x gap
+    alone reaches the best distance (the same closest distances as a brute-force scan, summed in a's order).
+    """
     n = a.shape[0]
-    if n == 0 or b.shape[0] == 0:
+    m = b.shape[0]
+    if n == 0 or m == 0:
         return np.inf
+    order = np.argsort(b[:, 0])
+    bs = np.empty((m, 3))
+    for j in range(m):
+        bs[j, 0] = b[order[j], 0]
+        bs[j, 1] = b[order[j], 1]
+        bs[j, 2] = b[order[j], 2]
+    xs = bs[:, 0].copy()
     acc = 0.0
     for i in range(n):
+        a0, a1, a2 = a[i, 0], a[i, 1], a[i, 2]
         best = np.inf
-        for j in range(b.shape[0]):
-            e0 = a[i, 0] - b[j, 0]
-            e1 = a[i, 1] - b[j, 1]
-            e2 = a[i, 2] - b[j, 2]
+        start = np.searchsorted(xs, a0)
+        j = start
+        while j < m:
+            e0 = a0 - bs[j, 0]
+            if e0 * e0 >= best:
+                break
+            e1 = a1 - bs[j, 1]
+            e2 = a2 - bs[j, 2]
             dd = e0 * e0 + e1 * e1 + e2 * e2
             if dd < best:
                 best = dd
+            j += 1
+        j = start - 1
+        while j >= 0:
+            e0 = a0 - bs[j, 0]
+            if e0 * e0 >= best:
+                break
+            e1 = a1 - bs[j, 1]
+            e2 = a2 - bs[j, 2]
+            dd = e0 * e0 + e1 * e1 + e2 * e2
+            if dd < best:
+                best = dd
+            j -= 1
         acc += math.sqrt(best)
     return acc / n
 
@@ -1203,6 +1257,91 @@ def knn_points(pts, k):  # type: ignore[no-untyped-def]
     return out
 
 
+@njit(cache=True, nogil=True)
+def radius_neighbours(pts, k, radius):  # type: ignore[no-untyped-def]
+    """Each point's k - 1 nearest other points within `radius` metres, as `features.fpfh` had them from
+    cKDTree.query(k, distance_upper_bound): (N, k - 1) indices (0 where none), distances (1.0 where none) and
+    validity; the point itself (the nearest, column 0 of `knn_points`) is left out. Distances are
+    sqrt(e0^2 + e1^2 + e2^2) summed in that order, a neighbour counts when its squared distance is below radius^2."""
+    n = pts.shape[0]
+    nb = knn_points(pts, k)
+    kk = nb.shape[1] - 1 if nb.shape[1] > 0 else 0
+    idx = np.zeros((n, kk), dtype=np.int64)
+    dist = np.ones((n, kk))
+    valid = np.zeros((n, kk), dtype=np.bool_)
+    lim = radius * radius
+    for i in range(n):
+        for j in range(kk):
+            m = nb[i, j + 1]
+            e0 = pts[i, 0] - pts[m, 0]
+            e1 = pts[i, 1] - pts[m, 1]
+            e2 = pts[i, 2] - pts[m, 2]
+            dd = e0 * e0 + e1 * e1 + e2 * e2
+            if dd < lim:
+                idx[i, j] = m
+                dist[i, j] = math.sqrt(dd)
+                valid[i, j] = True
+    return idx, dist, valid
+
+
+@njit(cache=True, nogil=True)
+def voxel_first(points, voxel):  # type: ignore[no-untyped-def]
+    """`features.voxel_downsample`: sorted indices of one point per occupied voxel, the one nearest the voxel
+    centre (lowest index among equal distances), with the same arithmetic (key = floor(p / voxel),
+    offset = p / voxel - key - 0.5)."""
+    n = points.shape[0]
+    key = np.empty((n, 3), dtype=np.int64)
+    dd = np.empty(n)
+    for i in range(n):
+        acc = 0.0
+        for u in range(3):
+            f = points[i, u] / voxel
+            kf = math.floor(f)
+            key[i, u] = int(kf)
+            o = f - float(key[i, u]) - 0.5
+            acc += o * o
+        dd[i] = acc
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    lo = key[0].copy()
+    hi = key[0].copy()
+    for i in range(n):
+        for u in range(3):
+            lo[u] = min(lo[u], key[i, u])
+            hi[u] = max(hi[u], key[i, u])
+    s1 = hi[1] - lo[1] + 1
+    s2 = hi[2] - lo[2] + 1
+    s0 = hi[0] - lo[0] + 1
+    if s0 < (1 << 20) and s1 < (1 << 20) and s2 < (1 << 20):
+        comb = np.empty(n, dtype=np.int64)
+        for i in range(n):
+            comb[i] = ((key[i, 0] - lo[0]) * s1 + (key[i, 1] - lo[1])) * s2 + (key[i, 2] - lo[2])
+        order = np.argsort(comb, kind="mergesort")
+    else:  # lexicographic by stable sorts (last key first)
+        order = np.argsort(key[:, 2], kind="mergesort")
+        order = order[np.argsort(key[order, 1], kind="mergesort")]
+        order = order[np.argsort(key[order, 0], kind="mergesort")]
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    g = 0
+    while g < n:
+        best = order[g]
+        e = g + 1
+        while e < n:
+            c = order[e]
+            if key[c, 0] != key[best, 0] or key[c, 1] != key[best, 1] or key[c, 2] != key[best, 2]:
+                break
+            if dd[c] < dd[best]:
+                best = c
+            e += 1
+        out[m] = best
+        m += 1
+        g = e
+    res = out[:m].copy()
+    res.sort()
+    return res
+
+
 # -- fit helpers (hypothesis bookkeeping and the full pose score, one call each) ----------------------------------
 
 
@@ -1299,7 +1438,7 @@ def depth_scores(samples, normals, cfo, scale, spacing, fx, fy, cx, cy, depth, t
         meas = depth[v, u]
         valid = meas > 0 and np.isfinite(meas)
         occluded = valid and meas - z < -tol
-        nearest, closest = _window_depths(depth, u, v, rad, z)
+        nearest, closest = _window_support(depth, u, v, rad, z, tol)
         if occluded:
             n_occ += 1
         else:
