@@ -20,7 +20,7 @@ import numpy as np
 
 from normpos_grasp.templates.features import voxel_downsample
 from normpos_grasp.templates.prepared import PreparedTemplate
-from normpos_grasp.typing import FloatArray, IntArray
+from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
 #: angle quantisation of the features and of alpha (pi / N_ANGLE and 2 pi / N_ALPHA radians)
 N_ANGLE = 30
@@ -341,3 +341,136 @@ def cluster_poses(
 def scene_references(n: int, every: int) -> IntArray:
     """Every `every`-th scene point as a reference point."""
     return np.arange(0, n, max(1, every), dtype=np.int64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _score_poses(poses, pts, nrm, depth, inside, fx, fy, cx, cy, tol_m, noise_per_m2):  # type: ignore[no-untyped-def]
+    """Per pose (K, 4, 4) camera_from_object: counts over the model points (M, 3) with normals (M, 3) that face the
+    camera: (supported inside the region, supported outside it, seen through, visible)."""
+    k_n = poses.shape[0]
+    hgt, wid = depth.shape
+    out = np.zeros((k_n, 4), dtype=np.int64)
+    for k in range(k_n):
+        r = poses[k]
+        n_in = n_out = n_see = n_vis = 0
+        for i in range(pts.shape[0]):
+            x = r[0, 0] * pts[i, 0] + r[0, 1] * pts[i, 1] + r[0, 2] * pts[i, 2] + r[0, 3]
+            y = r[1, 0] * pts[i, 0] + r[1, 1] * pts[i, 1] + r[1, 2] * pts[i, 2] + r[1, 3]
+            z = r[2, 0] * pts[i, 0] + r[2, 1] * pts[i, 1] + r[2, 2] * pts[i, 2] + r[2, 3]
+            if z <= 0.05:
+                continue
+            nx = r[0, 0] * nrm[i, 0] + r[0, 1] * nrm[i, 1] + r[0, 2] * nrm[i, 2]
+            ny = r[1, 0] * nrm[i, 0] + r[1, 1] * nrm[i, 1] + r[1, 2] * nrm[i, 2]
+            nz = r[2, 0] * nrm[i, 0] + r[2, 1] * nrm[i, 1] + r[2, 2] * nrm[i, 2]
+            if nx * x + ny * y + nz * z >= 0.0:
+                continue  # faces away from the camera
+            u = int(fx * x / z + cx + 0.5)
+            v = int(fy * y / z + cy + 0.5)
+            if u < 0 or u >= wid or v < 0 or v >= hgt:
+                continue
+            n_vis += 1
+            meas = depth[v, u]
+            if not (meas > 0.0):
+                continue
+            tol = tol_m + 2.5 * noise_per_m2 * z * z
+            diff = meas - z
+            if abs(diff) <= tol:
+                if inside[v, u]:
+                    n_in += 1
+                else:
+                    n_out += 1
+            elif diff > max(3.0 * tol, 0.01):
+                n_see += 1
+        out[k, 0] = n_in
+        out[k, 1] = n_out
+        out[k, 2] = n_see
+        out[k, 3] = n_vis
+    return out
+
+
+def depth_counts(
+    points: FloatArray,
+    normals: FloatArray,
+    poses: FloatArray,
+    depth: FloatArray,
+    inside: BoolArray,
+    k: FloatArray,
+    tol_m: float,
+    noise_per_m2: float,
+) -> IntArray:
+    """(K, 4) counts per (K, 4, 4) camera_from_object pose over the object-frame points (M, 3) with outward normals
+    (M, 3) that face the camera and project into the (H, W) depth image (metres; intrinsics k (3, 3), no
+    distortion): those whose pixel's depth agrees (within tol_m + 2.5 x noise_per_m2 x z^2) and lies inside the region
+    (`inside`, (H, W) bool), those agreeing outside it, those the sensor sees through (depth more than 3 tol, at least
+    1 cm, behind them), and all of them. Visibility is back-face culling (no self-occlusion)."""
+    if len(poses) == 0:
+        return np.zeros((0, 4), dtype=np.int64)
+    return np.asarray(
+        _score_poses(
+            np.ascontiguousarray(poses, dtype=np.float64),
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(normals, dtype=np.float64),
+            np.ascontiguousarray(depth, dtype=np.float64),
+            np.ascontiguousarray(inside, dtype=np.bool_),
+            float(k[0, 0]),
+            float(k[1, 1]),
+            float(k[0, 2]),
+            float(k[1, 2]),
+            float(tol_m),
+            float(noise_per_m2),
+        )
+    )
+
+
+def depth_scores(
+    model: PPFModel,
+    poses: FloatArray,
+    depth: FloatArray,
+    inside: BoolArray,
+    k: FloatArray,
+    tol_m: float,
+    noise_per_m2: float,
+) -> FloatArray:
+    """Cheap depth-image evidence of (K, 4, 4) camera_from_object poses on the model's points, (K,) in model points:
+    visible points whose pixel's depth agrees (within tol_m + 2.5 x the noise at their range) and lies inside the
+    region (`inside`, (H, W) bool: the residual ROI), minus those agreeing with depth outside it (the support plane,
+    claimed parts), minus 3 x those the sensor sees through (`depth_counts`)."""
+    c = depth_counts(model.points, model.normals, poses, depth, inside, k, tol_m, noise_per_m2)
+    return np.asarray(c[:, 0] - c[:, 1] - 3.0 * c[:, 2], dtype=np.float64)
+
+
+def nms_poses(
+    poses: FloatArray,
+    scores: FloatArray,
+    centroid: FloatArray,
+    dist_m: float,
+    angle_rad: float,
+    n_max: int,
+    symmetries: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Greedy non-maximum suppression, best score first: a pose is dropped when a kept one has its posed `centroid`
+    within `dist_m` and its rotation within `angle_rad` (up to `symmetries`, (M, 4, 4)). Returns the `n_max` best
+    (K, 4, 4) poses and their (K,) scores (scores <= 0 are not kept)."""
+    order = np.argsort(-scores, kind="stable")
+    order = order[scores[order] > 0]
+    if len(order) == 0:
+        return np.zeros((0, 4, 4)), np.zeros(0)
+    p = poses[order]
+    centres = p[:, :3, :3] @ centroid + p[:, :3, 3]
+    rot = p[:, :3, :3].reshape(len(p), 9)
+    sym_r = np.eye(3)[None] if symmetries is None or len(symmetries) == 0 else symmetries[:, :3, :3]
+    cos_lim = 1.0 + 2.0 * np.cos(angle_rad)
+    kept: list[int] = []
+    for i in range(len(p)):
+        if kept:
+            kk = np.asarray(kept)
+            near = np.linalg.norm(centres[kk] - centres[i], axis=1) < dist_m
+            if near.any():
+                equiv = (p[i, :3, :3] @ sym_r).reshape(-1, 9)
+                if np.any(np.max(rot[kk[near]] @ equiv.T, axis=1) > cos_lim):
+                    continue
+        kept.append(i)
+        if len(kept) >= n_max:
+            break
+    ki = np.asarray(kept)
+    return p[ki], scores[order][ki]
