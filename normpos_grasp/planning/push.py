@@ -9,7 +9,7 @@ linear moves.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,10 +36,14 @@ class PushHand:
 
 @dataclass(frozen=True)
 class Push:
-    """A planned push: the closed gripper's start pose `world_from_tcp` (4, 4) and the horizontal push (3,), m."""
+    """A planned push: the closed gripper's start pose `world_from_tcp` (4, 4) and the horizontal push (3,), m.
+    kind: 'push' (the fingers beside the part) or 'drag' (`planning.drag`: the fingertips pressed `press_m` metres
+    into the part's top, sliding it along)."""
 
     world_from_tcp: FloatArray
     push: FloatArray
+    kind: str = "push"
+    press_m: float = 0.0
 
 
 def plan_push(
@@ -58,9 +62,23 @@ def plan_push(
     everything from 8 cm above down to the start (jaws closing across or along the push), and the hand must stay
     clear of the cell over the push (`push_m`, else half of it).
     `floor_z`: the bin floor's height, m. Returns the push, or None when no perceived object can be pushed."""
+    return next(push_candidates(plan, fits, normpositions, cell, hand, floor_z, push_m), None)
+
+
+def push_candidates(
+    plan: PickPlan,
+    fits: Sequence[TemplateFit],
+    normpositions: Sequence[NormPosition],
+    cell: CellConfig,
+    hand: PushHand,
+    floor_z: float,
+    push_m: float,
+) -> Iterator[Push]:
+    """Every push `plan_push` would accept, best first (one per object and direction; `plan_push` takes the
+    first). A caller that also plans the arm's path (`judged_push_motion`) takes the next when that one has none."""
     targets = list(plan.targets)
     if not targets:
-        return None
+        return
     arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
     world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
     world.set_arm(arm)
@@ -119,8 +137,8 @@ def plan_push(
                     p[:3, 3] += d * s
                     along.append(p)
                 if all(world.check_tool(p, 0.0, skip=("object", "clutter")) is None for p in along):
-                    return Push(start, d * dist)
-    return None
+                    yield Push(start, d * dist)
+                    break
 
 
 def push_motion(
@@ -172,12 +190,17 @@ def push_motion(
         except _PathRejected as exc:
             last = exc
             continue
-        if not all(free(q) for q in down[1:]):
+        # a drag presses the fingertips `press_m` into the part it slides: the descent's last `press_m` + 5 mm come
+        # into contact with it (the drag planner proved the tool clear of everything above) and are judged like the
+        # slide itself
+        heights = (arm.fk(down) @ cell.tool.flange_from_tcp)[:, 2, 3] - start[2, 3]
+        touching = heights <= push.press_m + 0.005 if push.press_m > 0 else np.zeros(len(down), dtype=bool)
+        if not all(free(q) for q, t in zip(down[1:], touching[1:], strict=True) if not t):
             last = _PathRejected("push: collision on the way down", "push_collision")
             continue
         # along the push and on the way up the tool touches the parts it moved (the perceived world no longer
         # holds where they are): the tool is checked against the cell only, the arm against everything
-        pushing = np.vstack([along, up[1:]])
+        pushing = np.vstack([down[touching], along, up[1:]])
         if any(world.check_arm(q) is not None for q in pushing) or any(
             world.check_config(q, 0.0, skip=("object", "clutter")) is not None for q in pushing
         ):
@@ -203,3 +226,27 @@ def push_motion(
             motion.tcp_speed_m_s,
         )
     raise last
+
+
+def judged_push_motion(
+    push: Push,
+    fits: Sequence[TemplateFit],
+    normpositions: Sequence[NormPosition],
+    cell: CellConfig,
+    start_q: FloatArray,
+) -> Trajectory:
+    """`push_motion`, judged by the cell as execution judges a plan (`SafetyLimits.check_path` on the samples as
+    plan.json rounds them: joint limits, TCP workspace, joint speed and acceleration caps). Raises PlanningError with
+    reason 'push_cell_<check>' when the cell refuses it (and push_motion's reasons when it has no path)."""
+    from normpos_grasp.cell.limits import SafetyLimits
+    from normpos_grasp.errors import SafetyViolation
+    from normpos_grasp.planning.plan import _cell_reason, _PathRejected
+
+    trajectory = push_motion(push, fits, normpositions, cell, start_q)
+    t = np.array([round(float(v), 6) for v in trajectory.t])
+    q = np.array([[round(float(v), 9) for v in row] for row in trajectory.q])
+    try:
+        SafetyLimits.from_cell(cell).check_path([f"s{k}" for k in range(len(q))], q, t, q)
+    except SafetyViolation as exc:
+        raise _PathRejected(f"the cell refuses the {push.kind}: {exc}", _cell_reason("push", exc)) from exc
+    return trajectory
