@@ -105,6 +105,11 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="leave objects whose template fit was rejected as clutter (default: pick them by their measured box)",
     )
+    parser.add_argument(
+        "--no-drags",
+        action="store_true",
+        help="only push parts when no grasp is feasible (default: also drag parts out from walls and corners)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.set_defaults(handler=run)
 
@@ -165,6 +170,7 @@ def _run(args: argparse.Namespace) -> int:
         reuse_fits=not args.no_reuse_fits,
         relaxed_plan=not args.no_relaxed_plan,
         pick_unmatched=not args.no_pick_unmatched,
+        drags=not args.no_drags,
     )
     if cell.bin is None or (cell.world_from_camera is None and cell.wrist_camera is None):
         raise InputError(
@@ -221,6 +227,9 @@ def _run(args: argparse.Namespace) -> int:
             indent=1,
         )
     )
+    from normpos_grasp.simulate.trace import format_cause_table
+
+    print(format_cause_table(summary["causes"]))
     print(
         f"{timing['picks']} picks in {wall:.1f} s ({timing['picks_per_minute']:.1f} picks/min"
         + (f"; {len(done)} scenes resumed" if done else "")

@@ -33,10 +33,11 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp import __version__
-from normpos_grasp.atomic import atomic_write_text
+from normpos_grasp.atomic import atomic_write_bytes, atomic_write_text
 from normpos_grasp.errors import InputError, MissingDependency, SimulationError
 from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, run_scene
 from normpos_grasp.simulate.signals import Interrupted, init_worker, signals_deferred, signals_ignored, signals_raise
+from normpos_grasp.simulate.trace import LeftPart, cause_rows
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +76,9 @@ CSV_COLUMNS = (
     "reused",
     "nudges",
     "nudge_collisions",
+    "drags",
+    "detail",
+    "picture",
 )
 
 MANIFEST_FORMAT = "normpos-grasp/simulate-run@1"
@@ -86,6 +90,7 @@ RESULT_FILES = (
     "success_by_depth.png",
     "success_by_occlusion.png",
     "timing.json",
+    "failures.html",
     "summary.json",
 )
 #: seconds a worker gets to exit after SIGTERM before it is killed
@@ -263,6 +268,7 @@ def scene_to_json(result: SceneResult) -> dict[str, Any]:
         "cleared": result.cleared,
         "parts_left": result.parts_left,
         "picks": [dict(p.__dict__) for p in result.picks],
+        "left": [dict(left.__dict__) for left in result.left],
     }
 
 
@@ -272,9 +278,10 @@ def scene_from_json(data: Any, source: str = "scene") -> SceneResult:
     try:
         if data.get("format") != SCENE_FORMAT:
             raise InputError(f"{source}: not a simulate scene file (format {data.get('format')!r})")
-        picks = tuple(PickRecord(**{k: p[k] for k in fields}) for p in data["picks"])
+        picks = tuple(PickRecord(**{k: p[k] for k in fields if k in p}) for p in data["picks"])
+        left = tuple(LeftPart(str(e["part"]), str(e["stage"]), str(e["detail"])) for e in data.get("left", ()))
         return SceneResult(
-            int(data["scene"]), int(data["n_parts"]), bool(data["cleared"]), picks, int(data["parts_left"])
+            int(data["scene"]), int(data["n_parts"]), bool(data["cleared"]), picks, int(data["parts_left"]), left
         )
     except (AttributeError, KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, InputError):
@@ -314,8 +321,9 @@ class RunFolder:
         for name in ("manifest.json", *RESULT_FILES):
             with contextlib.suppress(FileNotFoundError):
                 (self.path / name).unlink()
-        if self.scenes_dir.is_dir():
-            shutil.rmtree(self.scenes_dir)
+        for folder in (self.scenes_dir, self.path / "failures"):
+            if folder.is_dir():
+                shutil.rmtree(folder)
 
     def parameters(self) -> dict[str, Any]:
         """The manifest's parameters; InputError when it is not a simulate manifest."""
@@ -348,7 +356,11 @@ class RunFolder:
         return self.scenes_dir / f"scene_{index:06d}.json"
 
     def write_scene(self, result: SceneResult) -> None:
-        """Write one finished scene atomically (a reader sees the whole file or none)."""
+        """Write one finished scene atomically (a reader sees the whole file or none), after its failure pictures."""
+        for name, png in result.pictures:
+            path = self.path / name
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(path, png)
         text = json.dumps(scene_to_json(result), indent=None, separators=(",", ":")) + "\n"
         atomic_write_text(self.scene_path(result.scene), text)
 
@@ -410,12 +422,14 @@ def summarise(result: BatchResult) -> dict[str, Any]:
         "parts_left_in_bin": sum(s.parts_left for s in result.scenes),
         "nudges": sum(p.nudges for p in picks),
         "nudge_collisions": sum(p.nudge_collisions for p in picks),
+        "drags": sum(p.drags for p in picks),
         "picks_attempted": attempted,
         "picks_succeeded": succeeded,
         "success_rate": round(succeeded / attempted, 6) if attempted else 0.0,
         "failures_by_cause": causes,
         "physics_outcomes": dict(sorted(physics.items())),
         "by_part": dict(sorted(by_part.items())),
+        "causes": cause_rows(result.scenes),
     }
 
 
@@ -445,8 +459,31 @@ def write_results(result: BatchResult, out_dir: str | Path, timing: dict[str, An
     if timing is not None:
         atomic_write_text(out / "timing.json", json.dumps(timing, indent=1) + "\n")
     summary = summarise(result)
+    atomic_write_text(out / "failures.html", failures_page(summary))
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=1, sort_keys=False) + "\n")
     return summary
+
+
+def failures_page(summary: Mapping[str, Any]) -> str:
+    """failures.html: the cause table (stage, detail, failed picks, parts left) with the first picture of each."""
+    import html
+
+    rows = []
+    for r in summary["causes"]:
+        pic = html.escape(str(r["picture"]))
+        img = f'<a href="{pic}"><img src="{pic}" width="320"></a>' if pic else "-"
+        rows.append(
+            f"<tr><td>{html.escape(r['stage'])}</td><td>{html.escape(r['detail'])}</td>"
+            f"<td>{r['failed_picks']}</td><td>{r['parts_left']}</td><td>{img}</td></tr>"
+        )
+    held = f"{summary['picks_succeeded']} / {summary['picks_attempted']} picks held"
+    cleared = f"{summary['scenes_cleared']} / {summary['scenes']} bins cleared"
+    return (
+        "<!doctype html><html><head><meta charset='utf-8'><title>simulate: failures by cause</title></head><body>"
+        f"<h1>Failures by cause</h1><p>{held}; {cleared}; {summary['parts_left_in_bin']} parts left in bins</p>"
+        "<table border='1' cellpadding='4'><tr><th>stage</th><th>detail</th><th>failed picks</th>"
+        "<th>parts left</th><th>picture</th></tr>" + "".join(rows) + "</table></body></html>\n"
+    )
 
 
 def timing_summary(result: BatchResult, wall_s: float, resumed: Collection[int] = ()) -> dict[str, Any]:

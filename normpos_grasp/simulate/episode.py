@@ -39,10 +39,11 @@ from normpos_grasp.measure.measure import MeasureOptions
 from normpos_grasp.perception.change import mask_iou
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, ReuseOptions, perceive
 from normpos_grasp.planning.evaluate import EvaluationOptions
-from normpos_grasp.planning.plan import stop_line
-from normpos_grasp.planning.push import PushHand, plan_push
+from normpos_grasp.planning.plan import rejections_by_target, stop_line
+from normpos_grasp.planning.push import Push, PushHand
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
+from normpos_grasp.simulate.trace import LeftPart, dominant_reason, failure_picture, left_parts
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)
@@ -75,7 +76,12 @@ class SimulationConfig:
     planned again with `relaxed_evaluation` (riskier grasps: no extra noise margin around the other parts, jaw
     tips raised further off the floor); physics judges them. max_nudges: when still no grasp is found, the cell
     may push a part this many times per pick (`planning.push.plan_push` on the perceived scene,
-    `sim.physics_push` on the true one) by `nudge_m` metres and perceive again, before the retries.
+    `sim.physics_push` on the true one) by `nudge_m` metres and perceive again, before the retries; with `drags`,
+    a part near a wall (where a push cannot get behind it) is first dragged `drag_m` metres away from it
+    (`planning.drag`). Every push and drag is carried
+    out by an arm motion planned and judged like a pick's (`planning.push.judged_push_motion`: collision-checked,
+    within the cell's joint, speed and workspace caps); of the `nudge_candidates` best drags (then pushes), the
+    first with such a motion is made.
     clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
     gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
     resolution: (W, H) image size, pixels. physics: physics options.
@@ -102,6 +108,9 @@ class SimulationConfig:
     relaxed_plan: bool = True
     max_nudges: int = 2
     nudge_m: float = 0.05
+    drags: bool = True
+    drag_m: float = 0.08
+    nudge_candidates: int = 4
     relaxed_evaluation: EvaluationOptions = field(
         default_factory=lambda: EvaluationOptions(noise_margin=False, max_raise_m=0.03)
     )
@@ -134,7 +143,9 @@ class PickRecord:
     fit_error_m: mean symmetric closest-point distance of the fitted vs true model points (nan when unknown).
     physics: physics outcome ('' when not simulated). captures: frames captured for this pick (1 + perception
     retries used); fitted / reused: instances fitted anew / whose previous fit was kept (change detection);
-    nudges: pushes made before this pick (nudge_collisions of them hit the cell).
+    nudges: pushes made before this pick (nudge_collisions of them hit the cell; drags of them were drags).
+    detail: the failure's finer cause (`simulate.trace`: the commonest rejection reason, the physics outcome, what
+    the hand hit, ...); picture: the failure's picture, relative to the run folder ('' for a held pick).
     Times in milliseconds."""
 
     scene: int
@@ -159,6 +170,9 @@ class PickRecord:
     nudge_collisions: int
     pipeline_ms: float
     physics_ms: float
+    detail: str = ""
+    picture: str = ""
+    drags: int = 0
 
     def row(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -170,13 +184,17 @@ class PickRecord:
 @dataclass(frozen=True)
 class SceneResult:
     """All picks of one scene; n_parts: parts in the scene at the start; cleared: bin empty at the end;
-    parts_left: parts still in the bin at the end (parts knocked out of the bin are neither picked nor left)."""
+    parts_left: parts still in the bin at the end (parts knocked out of the bin are neither picked nor left).
+    left: the trace of each part left (`simulate.trace.LeftPart`). pictures: (relative path, PNG bytes) of the
+    failure pictures the records name (written next to the scene's file, not part of it)."""
 
     scene: int
     n_parts: int
     cleared: bool
     picks: tuple[PickRecord, ...]
     parts_left: int = 0
+    left: tuple[LeftPart, ...] = ()
+    pictures: tuple[tuple[str, bytes], ...] = field(default=(), compare=False, repr=False)
 
 
 def scene_seed(seed: int, scene_index: int) -> int:
@@ -387,6 +405,8 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     samples = setup.samples
     n_start = len(templates)
     records: list[PickRecord] = []
+    pictures: list[tuple[str, bytes]] = []
+    left: list[LeftPart] = []
     failures = 0
     pick = 0
     im_id = 0
@@ -397,7 +417,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     while templates and pick < max_picks and failures < config.max_consecutive_failures:
         t0 = time.perf_counter()
         view = 0  # the wrist camera's capture pose: the first, then the next one for each retry
-        captures = fitted = reused = nudges = hits = 0
+        captures = fitted = reused = nudges = hits = drags = 0
         retries_left, nudges_left = config.perception_retries, config.max_nudges
         last = previous if config.reuse_fits else None
         blocked = ""  # why the arm could not reach the capture pose
@@ -427,8 +447,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 break
             nudge = None
             if nudges_left > 0:
-                hand = PushHand(spec.tip_beyond_tcp_m, spec.finger_width_m, spec.finger_thickness_m)
-                nudge = plan_push(plan, seen.fits, seen.normpositions, cell, hand, floor_z, config.nudge_m)
+                nudge, nudge_q = _planned_nudge(plan, seen, cell, spec, floor_z, config, arm_q)
             if nudge is not None:
                 from normpos_grasp.sim.physics_push import PushOptions, simulate_push
 
@@ -438,7 +457,9 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 )  # fmt: skip
                 nudges_left -= 1
                 nudges += 1
+                drags += int(nudge.kind == "drag")
                 hits += int(pushed.outcome == "collision")
+                arm_q = nudge_q  # the arm carried the push out: it stands where the motion ended
                 keep = [j for j in range(len(templates)) if _in_bin(pushed.world_from_objects_final[j], cell, floor_z)]
                 templates = [templates[j] for j in keep]
                 poses = pushed.world_from_objects_final[keep].reshape(-1, 4, 4)
@@ -459,13 +480,15 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             records.append(
                 _record(
                     scene_index, pick, "no_feasible_grasp", "", "", "", None, np.nan, np.nan, np.nan, len(templates),
-                    (captures, fitted, reused, nudges, hits), (time.perf_counter() - t0) * 1e3, 0.0, blocked,
+                    (captures, fitted, reused, nudges, hits, drags), (time.perf_counter() - t0) * 1e3, 0.0, blocked,
+                    "capture_move",
                 )
             )  # fmt: skip
+            left = [LeftPart(t.name, "path", "no capture move") for t in templates]
             break
         previous = seen
         frame, instances, fits = seen.frame, seen.instances, seen.fits
-        counts = (captures, fitted, reused, nudges, hits)
+        counts = (captures, fitted, reused, nudges, hits, drags)
         if not templates:  # a push knocked the last parts out of the bin: nothing left to pick
             break
         pipeline_ms = (time.perf_counter() - t0) * 1e3
@@ -480,11 +503,25 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 cause, reason = "wrong_fit", "no template fit accepted: " + "; ".join(rejected)
             else:
                 cause = "no_feasible_grasp"
+            detail = (
+                "no instance"
+                if cause == "segmentation_miss"
+                else (_short_reason(reason) if cause == "wrong_fit" else dominant_reason(plan.counts))
+            )
+            closest = [(r.best_world_from_tcp, r.best_opening_m) for r in rejections_by_target(plan)]
+            name = _picture_name(scene_index, pick)
+            pictures.append(
+                (name, _picture(seen, list(zip(templates, poses, strict=True)), closest, f"{cause}: {reason}"))
+            )
             records.append(
                 _record(
                     scene_index, pick, cause, "", "", "", None, np.nan, np.nan, np.nan, len(templates), counts,
-                    pipeline_ms, 0.0, reason,
+                    pipeline_ms, 0.0, reason, detail, name,
                 )
+            )  # fmt: skip
+            left = left_parts(
+                [t.name for t in seen.frame.layout.templates], list(seen.frame.rendering.masks_visible),
+                instances, fits, plan if plan.targets else None, config.match_iou,
             )  # fmt: skip
             break
         cand = plan.chosen.candidate
@@ -495,11 +532,15 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         ious = [mask_iou(inst.mask, m) for m in frame.rendering.masks_visible] if inst is not None else []
         k = int(np.argmax(ious)) if ious else -1
         matched = k >= 0 and ious[k] >= config.match_iou
+        chosen = [(cand.world_from_tcp, float(cand.opening_m))]
         if k < 0 or ious[k] <= 0.0:
+            name = _picture_name(scene_index, pick)
+            pictures.append((name, _picture(seen, [], chosen, "segmentation_miss: the chosen instance covers no part")))
             records.append(
                 _record(
                     scene_index, pick, "segmentation_miss", "", target.template, cand.scheme, None, np.nan, np.nan,
                     np.nan, len(templates), counts, pipeline_ms, 0.0, "the chosen instance covers no part",
+                    "chosen instance covers no part", name,
                 )
             )  # fmt: skip
             failures += 1
@@ -537,10 +578,16 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             cause = "collision"
         else:
             cause = "physics_drop"
+        detail, name = "", ""
+        if cause:
+            detail = _failure_detail(cause, result, target.template == templates[k].name)
+            name = _picture_name(scene_index, pick)
+            caption = f"{cause} ({detail}): {result.reason}; fit {target.template} vs true {templates[k].name}"
+            pictures.append((name, _picture(seen, [(templates[k], true_pose)], chosen, caption)))
         records.append(
             _record(
                 scene_index, pick, cause, templates[k].name, target.template, cand.scheme, result, depth, occlusion,
-                fit_err, len(templates), counts, pipeline_ms, physics_ms, result.reason,
+                fit_err, len(templates), counts, pipeline_ms, physics_ms, result.reason, detail, name,
             )
         )  # fmt: skip
         # the scene as physics left it
@@ -555,7 +602,90 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         templates = [templates[j] for j in keep]
         poses = np.array([new_poses[j] for j in keep]).reshape(-1, 4, 4)
         pick += 1
-    return SceneResult(scene_index, n_start, not templates, tuple(records), len(templates))
+    if templates and not left:  # the scene ran out of picks: every part left is traced to the stop
+        last_cause = next((r.cause for r in reversed(records) if r.cause), "")
+        why = (
+            f"after {failures} failed picks in a row (last {last_cause})"
+            if failures >= config.max_consecutive_failures
+            else "the most picks allowed"
+        )
+        left = [LeftPart(t.name, "stopped", why) for t in templates]
+    return SceneResult(
+        scene_index, n_start, not templates, tuple(records), len(templates), tuple(left), tuple(pictures)
+    )
+
+
+def _planned_nudge(
+    plan: Any,
+    seen: _Perception,
+    cell: Any,
+    spec: GripperSpec,
+    floor_z: float,
+    config: SimulationConfig,
+    arm_q: FloatArray,
+) -> tuple[Push | None, FloatArray]:
+    """The first of the best drags (parts near a wall), then pushes, whose arm motion from `arm_q` is planned and
+    passes the cell's judge; with the joints the motion ends at. (None, arm_q) when none has one."""
+    import itertools
+
+    from normpos_grasp.errors import PlanningError
+    from normpos_grasp.planning.drag import drag_candidates
+    from normpos_grasp.planning.push import judged_push_motion, push_candidates
+
+    hand = PushHand(spec.tip_beyond_tcp_m, spec.finger_width_m, spec.finger_thickness_m)
+    args = (plan, seen.fits, seen.normpositions, cell, hand, floor_z, config.nudge_m)
+    n = config.nudge_candidates
+    tries = [itertools.islice(push_candidates(*args), n)]
+    if config.drags:  # a part against a wall is dragged away from it first: a push cannot get behind it
+        tries.insert(
+            0, itertools.islice(drag_candidates(plan, seen.fits, seen.normpositions, cell, floor_z, config.drag_m), n)
+        )
+    for candidate in itertools.chain(*tries):
+        try:
+            motion = judged_push_motion(candidate, seen.fits, seen.normpositions, cell, arm_q)
+        except PlanningError as exc:
+            logger.debug("%s refused: %s", candidate.kind, exc)
+            continue
+        return candidate, np.asarray(motion.q[-1], dtype=np.float64)
+    return None, arm_q
+
+
+def _picture_name(scene: int, pick: int) -> str:
+    """The run-folder path of a failed pick's picture."""
+    return f"failures/scene_{scene:06d}_pick_{pick:02d}.png"
+
+
+def _picture(
+    seen: _Perception,
+    true_parts: list[tuple[Template, FloatArray]],
+    grasps: list[tuple[FloatArray, float]],
+    caption: str,
+) -> bytes:
+    return failure_picture(seen.frame.frame, seen.instances, seen.fits, true_parts, grasps, caption)
+
+
+def _short_reason(reason: str) -> str:
+    """A reason without its figures (one row of the cause table for every pick it explains)."""
+    import re
+
+    text = re.sub(r"[-+]?\d[\d.]*(e[-+]?\d+)?", "#", reason.split(";")[0])
+    return text.strip()[:60]
+
+
+def _failure_detail(cause: str, result: PhysicsResult, same_template: bool) -> str:
+    """The finer cause of a pick physics judged (see `simulate.trace`)."""
+    if cause == "segmentation_miss":
+        return f"mask IoU below the match, then {result.outcome}"
+    if cause == "wrong_fit":
+        what = "wrong template" if not same_template else "pose off the true one"
+        return f"{what}, then {result.outcome}"
+    if cause == "collision":
+        hit = result.collision_with or "?"
+        import re
+
+        hit = re.sub(r"_g\d+$", "", hit)
+        return "hit a neighbour part" if re.match(r"nb\d+$", hit) else f"hit {hit}"
+    return result.outcome
 
 
 def _no_grasp_reason(counts: dict[str, int]) -> str:
@@ -604,6 +734,8 @@ def _record(
     pipeline_ms: float,
     physics_ms: float,
     reason: str,
+    detail: str = "",
+    picture: str = "",
 ) -> PickRecord:
     return PickRecord(
         scene=scene,
@@ -626,6 +758,9 @@ def _record(
         reused=counts[2],
         nudges=counts[3],
         nudge_collisions=counts[4],
+        drags=counts[5],
         pipeline_ms=float(pipeline_ms),
         physics_ms=float(physics_ms),
+        detail=detail,
+        picture=picture,
     )
