@@ -37,6 +37,7 @@ BIN = ZoneSpec("bin", np.array([0.28, -0.17, 0.0]), np.array([0.72, 0.17, 0.5]))
 OPERATOR = ZoneSpec("operator_side", np.array([0.74, -0.45, 0.0]), np.array([0.95, 0.45, 0.6]))
 SPEC = WatchSpec(zones=(BIN, OPERATOR), margin_m=0.02, downsample=1)
 MOVE = np.array([0.5, 0.15, -0.2, 0.0, 0.0, 0.4])  # home -> a pose over the bin's far side
+SIDEWAYS = (0.2, 0.09, 0.06)  # a hand-sized box lying along x, m
 
 
 def _cell_dict() -> dict:
@@ -135,8 +136,11 @@ def test_hand_and_person_in_zones_are_caught_and_named() -> None:
     check = det.check(scene.stream.frame(_Scene.q(0.6), [person]), _path(0.6))
     assert not check.clear and check.intrusions[0].label == "person"
     assert {i.zone for i in check.intrusions} <= {"operator_side", "bin"}  # leaning over the strip, reaching in
-    # the same hand outside every zone (on the table, away from the bin) is not an intrusion
-    outside = det.check(scene.stream.frame(_Scene.q(0.6), [hand_box(np.array([0.3, 0.35, 0.05]))]), _path(0.6))
+    # a hand outside every zone and beyond the approach band (on the table, 16 cm from the bin's zone) is not an
+    # intrusion
+    outside = det.check(
+        scene.stream.frame(_Scene.q(0.6), [hand_box(np.array([0.3, -0.4, 0.05]), SIDEWAYS)]), _path(0.6)
+    )
     assert outside.clear and outside.n_candidates > 0  # seen as new, but in no watched volume
     # with a 25 cm band around the arm watched instead, a hand beside the moving tool is caught
     band = WatchSpec(zones=(), arm_margin_m=0.25, downsample=1)
@@ -145,6 +149,61 @@ def test_hand_and_person_in_zones_are_caught_and_named() -> None:
     near_arm = hand_box(tcp + np.array([0.0, -0.2, 0.0]))
     check = scene.detector(band).check(scene.stream.frame(q, [near_arm]), _path(0.6))
     assert not check.clear and check.intrusions[0].zone == "arm_band"
+
+
+def test_approach_band_catches_a_hand_coming_in_not_one_resting_or_noise_of_its_size() -> None:
+    """A hand 6 cm outside the bin's zone (its leading part would be the first thing inside) stops the arm in the
+    second frame that shows it nearer (two frames of evidence); appearing, resting or backing off in the band it
+    does not, nor coming nearer beyond the band, nor with the band off; the same number of pixels of speckle in the
+    band, or a blob one pixel short of `min_blob_px`, never does."""
+    scene = _scene(2)
+    q, path = _Scene.q(0.6), _path(0.6)
+    det = scene.detector()
+    hand = hand_box(np.array([0.3, -0.3, 0.05]), SIDEWAYS)  # its edge 6.5 cm from the zone (y >= -0.19)
+    back, nearer = hand.moved(np.array([0.0, -0.03, 0.0])), hand.moved(np.array([0.0, 0.04, 0.0]))
+    for shown in (hand, hand, back):  # appears, rests, backs off
+        assert det.check(scene.stream.frame(q, [shown]), path).clear
+    caught = det.check(scene.stream.frame(q, [nearer]), path)  # 7 cm nearer than the frame before
+    assert not caught.clear and caught.intrusions[0].approaching and caught.intrusions[0].zone == "bin"
+    assert 0.0 < caught.intrusions[0].distance_m < 0.05 and caught.intrusions[0].n_in_zone < det.min_blob_px
+    off = IntrusionDetector(det.expected, det.zones, det.min_blob_px, approach_m=0.0)
+    far = scene.detector()
+    for shown in (back, nearer):
+        assert off.check(scene.stream.frame(q, [shown]), path).clear
+    for shown in (hand.moved(np.array([0.0, -0.14, 0.0])), hand.moved(np.array([0.0, -0.1, 0.0]))):
+        assert far.check(scene.stream.frame(q, [shown]), path).clear  # 20 -> 16.5 cm away
+    # speckle: as many pixels nearer than expected as the hand showed, scattered over the band beside the bin, in
+    # two frames (other pixels each time)
+    clear = scene.stream.frame(q)
+    rng = np.random.default_rng(4)
+    det = scene.detector()
+    v, u = np.nonzero(clear > 0)
+    pts = det.expected.world_points(v, u, clear[v, u])
+    gap = det.zones.distance(pts).min(axis=1)
+    keep = (gap > 0.01) & (gap < 0.12)
+    for _ in range(2):
+        pick = rng.choice(int(keep.sum()), min(int(keep.sum()), caught.intrusions[0].n_px), replace=False)
+        speckle = clear.copy()
+        speckle[v[keep][pick], u[keep][pick]] -= 0.1
+        assert det.check(speckle, path).clear
+    # a compact blob 10 cm above the table 6-8 cm beside the bin's zone, then 6 px (2 cm) nearer: one pixel short of
+    # min_blob_px it never trips, at 16 px it does
+    known = ~det.expected.unknown & (clear > 0)
+    side = (pts[:, 1] < -0.25) & (pts[:, 1] > -0.27) & (gap > 0.05) & (pts[:, 0] < 0.45)
+    r0, c0 = next(
+        (int(a), int(b)) for a, b in zip(v[side], u[side], strict=True) if known[a : a + 4, b - 6 : b + 4].all()
+    )
+    for n, expect_clear in ((det.min_blob_px - 1, True), (16, False)):
+        det = scene.detector()
+        seen = []
+        for c in (c0, c0 - 6):  # towards the zone: smaller columns on this side
+            blob = clear.copy()
+            block = np.zeros(clear.shape, dtype=bool)
+            block[r0 : r0 + 4, c : c + 4] = True
+            px = np.argwhere(block)[:n]
+            blob[px[:, 0], px[:, 1]] -= 0.1
+            seen.append(det.check(blob, path).clear)
+        assert seen == [True, expect_clear], n
 
 
 def test_arm_explains_its_own_pixels_in_3d_but_not_a_hand_that_overlaps_its_image() -> None:

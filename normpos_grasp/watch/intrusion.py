@@ -7,6 +7,15 @@ speckle, with the sensor's holes next to candidates counted as part of the shape
 candidates' zones come from per-pixel depth intervals of each zone box (no back-projection) and, for the rest,
 their distance to the arm (the arm band); an 8-connected blob with at least `min_blob_px` candidate pixels inside
 a watched zone is an intrusion, back-projected to the world to be named and located.
+
+Approach band: a blob that has fewer than `min_blob_px` pixels inside but at least `min_blob_px` inside or within
+`approach_m` of a zone box is an intrusion too when it is coming in: a blob of the previous frame lay near it (two
+frames of evidence) and it is nearer to the zone than the nearest such blob was by more than `APPROACH_EPS_M`. The
+camera sees only surfaces: a hand whose leading part is in the bin under the arm, or a person whose body is in the
+operator strip above the camera's view, shows only the part outside. The band is ISO 13855's separation distance
+S = K T for the watch's own reaction: K = 2.0 m/s (hand and arm approach speed) over T = two frame intervals at
+30 fps, so an intruder that can be inside before the frame after next is stopped now. Something that rests or
+recedes in the band does not stop the arm (nor keep a zone from clearing after a stop).
 """
 
 from __future__ import annotations
@@ -17,17 +26,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from normpos_grasp.cell.config import WatchSpec
+from normpos_grasp.errors import InputError
 from normpos_grasp.typing import BoolArray, FloatArray
 from normpos_grasp.watch.expected import ExpectedScene, downsample_depth
 from normpos_grasp.watch.person import PersonRule, blob_extent, classify
 from normpos_grasp.watch.zones import WatchZones
+
+# ISO 13855 approach speed of a hand or arm (2.0 m/s) over two frame intervals at 30 fps, m
+APPROACH_M = 0.13
+# a blob in the approach band counts as coming in when it is nearer to its zone than in the previous frame by more
+# than this (depth noise and a blob's changing outline move its nearest point by a few millimetres), m
+APPROACH_EPS_M = 0.01
 
 
 @dataclass(frozen=True, eq=False)
 class Intrusion:
     """One blob inside a zone: zone name, label ('person', 'hand', 'object'), pixels of the blob and inside the
     zone (watch pixels), centroid (3,) and extents (major, minor, height) in the world, m; points (<= 400, 3) world
-    samples of the blob for the live view."""
+    samples of the blob for the live view; approaching: caught in the approach band (fewer than `min_blob_px` pixels
+    inside), distance_m: then its nearest point's distance to the zone (0: touching it), m."""
 
     zone: str
     label: str
@@ -36,6 +53,8 @@ class Intrusion:
     centroid: FloatArray
     extent_m: tuple[float, float, float]
     points: FloatArray
+    distance_m: float = 0.0
+    approaching: bool = False
 
     def to_dict(self) -> dict[str, object]:
         return {
@@ -43,6 +62,8 @@ class Intrusion:
             "label": self.label,
             "pixels": self.n_px,
             "pixels_in_zone": self.n_in_zone,
+            "approaching": self.approaching,
+            "distance_m": round(self.distance_m, 3),
             "centroid_m": [round(float(v), 4) for v in self.centroid],
             "extent_m": [round(v, 3) for v in self.extent_m],
         }
@@ -65,15 +86,28 @@ class FrameCheck:
 
 
 class IntrusionDetector:
-    """Compares frames with an `ExpectedScene`; zones from the cell's `watch:` spec."""
+    """Compares frames with an `ExpectedScene`; zones from the cell's `watch:` spec; approach_m: width of the
+    approach band around each zone box (0: off), m. Keeps the previous frame's blobs in the band (`check` is meant
+    for the frames of one stream, in order)."""
 
     def __init__(
-        self, expected: ExpectedScene, zones: WatchZones, min_blob_px: int = 12, rule: PersonRule | None = None
+        self,
+        expected: ExpectedScene,
+        zones: WatchZones,
+        min_blob_px: int = 12,
+        rule: PersonRule | None = None,
+        approach_m: float = APPROACH_M,
     ) -> None:
+        if not approach_m >= 0.0:
+            raise InputError(f"approach_m must be >= 0 m, got {approach_m}")
         self.expected = expected
         self.zones = zones
         self.min_blob_px = int(min_blob_px)
         self.rule = rule or PersonRule()
+        self.approach_m = float(approach_m)
+        # the previous frame's blobs of at least min_blob_px: (row0, row1, col0, col1) bounding box, nearest distance
+        # to a zone box (0: some pixels inside), m
+        self._blobs: list[tuple[int, int, int, int, float]] = []
         # per pixel, the depth interval of each zone box along its ray (zone membership without back-projecting)
         self.enter, self.leave = zones.depth_intervals(expected.rays, expected.camera.require_world_from_camera())
 
@@ -108,19 +142,49 @@ class IntrusionDetector:
             cand &= shape
         n_cand = int(np.count_nonzero(cand))
         found: list[Intrusion] = []
+        blobs: list[tuple[int, int, int, int, float]] = []
         if n_cand >= self.min_blob_px:
             v, u = np.nonzero(cand)
-            zone = self._zone_of_pixels(v, u, d[v, u], q, held_radius_m)
+            z = d[v, u]
+            zone = self._zone_of_pixels(v, u, z, q, held_radius_m)
             inside = zone >= 0
-            if int(inside.sum()) >= self.min_blob_px:
+            # the approach band: candidates outside every zone within approach_m of a zone box
+            # distance to the nearest zone box of each candidate outside them; within approach_m: the approach band
+            track = self.approach_m > 0 and len(self.zones.names) > 0
+            gap = np.zeros(len(v))
+            near = inside.copy()
+            if track and not inside.all():
+                rest = np.nonzero(~inside)[0]
+                dist = self.zones.distance(ex.world_points(v[rest], u[rest], z[rest]))
+                k, gap[rest] = np.argmin(dist, axis=1), np.min(dist, axis=1)
+                ok = gap[rest] <= self.approach_m
+                near[rest[ok]] = True
+                zone[rest[ok]] = k[ok]
+            if track or int(inside.sum()) >= self.min_blob_px:
                 _, labels = cv2.connectedComponents(shape.astype(np.uint8), connectivity=8)
                 lab = labels[v, u]
                 area = np.bincount(lab)
                 in_zone = np.bincount(lab[inside], minlength=len(area))
-                for i in np.nonzero((area >= self.min_blob_px) & (in_zone >= self.min_blob_px))[0]:
+                in_band = np.bincount(lab[near], minlength=len(area))
+                for i in np.nonzero(area >= self.min_blob_px)[0]:
                     sel = lab == i
-                    pts = ex.world_points(v[sel], u[sel], d[v[sel], u[sel]])
-                    zi = zone[sel]
+                    distance, coming = 0.0, False
+                    if track:
+                        vs, us = v[sel], u[sel]
+                        box = (int(vs.min()), int(vs.max()), int(us.min()), int(us.max()))
+                        distance = 0.0 if in_zone[i] else float(gap[sel].min())
+                        blobs.append((*box, distance))
+                        if in_zone[i] < self.min_blob_px:
+                            if in_band[i] < self.min_blob_px:
+                                continue
+                            reach = int(np.ceil(ex.camera.fx * self.approach_m / float(np.median(z[sel])))) + 2
+                            coming = self._coming_in(box, distance, reach)
+                            if not coming:
+                                continue
+                    elif in_zone[i] < self.min_blob_px:
+                        continue
+                    pts = ex.world_points(v[sel], u[sel], z[sel])
+                    zi = zone[sel & near]
                     counts = np.bincount(zi[zi >= 0])
                     step = max(1, len(pts) // 400)
                     found.append(
@@ -132,10 +196,25 @@ class IntrusionDetector:
                             pts.mean(axis=0),
                             blob_extent(pts),
                             pts[::step][:400],
+                            distance,
+                            coming,
                         )
                     )
+        self._blobs = blobs
         elapsed, cpu = (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3
         return FrameCheck(tuple(found), n_cand, elapsed, cpu, cand if keep_mask else None)
+
+    def _coming_in(self, box: tuple[int, int, int, int], distance: float, reach_px: int) -> bool:
+        """Whether a blob short of `min_blob_px` pixels inside a zone (bounding box rows v0..v1, columns u0..u1;
+        nearest distance to a zone, m) comes in: a blob of the previous frame lay within `reach_px` of its box and
+        the nearest of those was farther from a zone by more than APPROACH_EPS_M."""
+        v0, v1, u0, u1 = box
+        before = [
+            p[4]
+            for p in self._blobs
+            if p[0] <= v1 + reach_px and p[1] >= v0 - reach_px and p[2] <= u1 + reach_px and p[3] >= u0 - reach_px
+        ]
+        return bool(before) and distance < min(before) - APPROACH_EPS_M
 
     def _zone_of_pixels(
         self, v: np.ndarray, u: np.ndarray, z: np.ndarray, q: FloatArray, held_radius_m: float

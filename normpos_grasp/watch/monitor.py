@@ -189,12 +189,12 @@ class ZoneWatch:
         self.log.last = check
         if not check.clear:
             first = check.intrusions[0]
-            self._trip(
-                f"{first.label} in zone {first.zone!r} ({first.n_in_zone} px, at "
-                f"{', '.join(f'{v:.2f}' for v in first.centroid)} m)",
-                frame,
-                check,
+            where = (
+                f"coming into zone {first.zone!r} ({first.distance_m * 100:.0f} cm away, {first.n_px} px"
+                if first.approaching
+                else f"in zone {first.zone!r} ({first.n_in_zone} px"
             )
+            self._trip(f"{first.label} {where}, at {', '.join(f'{v:.2f}' for v in first.centroid)} m)", frame, check)
         if self.on_check is not None:
             self.on_check(frame, check)
         return check

@@ -42,6 +42,12 @@ class WatchZones:
             out[near] = len(self.names)
         return out
 
+    def distance(self, points_world: FloatArray) -> FloatArray:
+        """(N, Z) Euclidean distance from each point (N, 3) to each zone box (grown by the margin), 0 inside, m."""
+        pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 1, 3)
+        gap = np.maximum(np.maximum(self.lo[None] - pts, pts - self.hi[None]), 0.0)
+        return np.asarray(np.sqrt(np.einsum("nzk,nzk->nz", gap, gap)))
+
     def depth_intervals(self, rays: np.ndarray, world_from_camera: FloatArray) -> tuple[np.ndarray, np.ndarray]:
         """(enter, leave), each (Z, H, W) float32: the z-depths (m) between which each pixel's ray (rays (H, W, 2):
         normalised pixel coordinates, so a point is z (x, y, 1)) lies inside each zone box; enter > leave where the
