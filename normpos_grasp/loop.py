@@ -8,6 +8,7 @@ folder, one pick per frame, nothing to check). A live camera plugs in through th
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -339,7 +340,9 @@ def run_cell_loop(
     runs (docs/loop.md, "Overlapped cycles"). The next turn uses that plan only when the pick counted, the cell is
     the one it was planned in and the arm ended where it started; otherwise it re-captures and re-plans. An
     exception in the worker stops the arm (the driver's stop request, or stop() at rest) and leaves the loop with
-    that exception; nothing is sent from its plan. Not combined with `watch` yet.
+    that exception; nothing is sent from its plan. Executed plans leave their stream open at the end (the arm held
+    at rest; `ExecuteOptions.hold_at_end`) and the prepared next plan goes on in it; the stream is closed before
+    anything else is sent and when the loop ends. Not combined with `watch` yet.
 
     Several bins (`cell.bins`, docs/cells.md "Several bins"): each turn plans from the bin after the one picked
     last (`plan_pick` goes on to the next bins when that one has no part or no feasible pick); a bin the frame
@@ -363,6 +366,8 @@ def run_cell_loop(
     if overlap and cell.wrist_camera is not None:
         raise InputError("overlap needs a fixed camera: a wrist camera cannot see the bin while the arm places")
     start_q = driver.state().q if (driver is not None and execute) else np.asarray(cell.home_q, dtype=np.float64)
+    # overlapped: a plan's stream stays open at its end for the prepared next plan (execute_plan's hold_at_end)
+    run_options = ExecuteOptions(hold_at_end=overlap and execute)
     records: list[PickRecord] = []
     cell_now = cell  # the cell as filled so far: used pattern slots gone, the parts left there static boxes
     ahead: _Lookahead | None = None  # the next turn, perceived and planned while the arm placed (overlap)
@@ -380,7 +385,7 @@ def run_cell_loop(
     pool_cm: AbstractContextManager[ThreadPoolExecutor | None] = (
         ThreadPoolExecutor(1, thread_name_prefix="normpos-overlap") if overlap else nullcontext()
     )
-    with pool_cm as pool:
+    with pool_cm as pool, _overlap_session(driver if execute else None, overlap):
         for index in range(max_picks):
             if source.exhausted:
                 break
@@ -393,6 +398,7 @@ def run_cell_loop(
                 frame, result, cycle_q = ahead.frame, ahead.result, ahead.start_q  # the plan starts where the arm is
                 timings = {"capture": ahead.capture_ms, **result.timings_ms, "overlap_wait": ahead.wait_ms}
             else:
+                _end_stream(driver)  # the last plan's stream, held for a prepared plan that is not coming
                 views = _capture_order(cell_now)
                 for view in views:  # a wrist camera tries its capture poses in turn
                     t0 = time.perf_counter()
@@ -448,7 +454,9 @@ def run_cell_loop(
                     ),
                     look.running() if look is not None else nullcontext(),
                 ):
-                    report = execute_plan(driver, plan_json, limits, dry_run=not execute, gripper=gripper)
+                    report = execute_plan(
+                        driver, plan_json, limits, dry_run=not execute, gripper=gripper, options=run_options
+                    )
             except ZoneIntrusion as exc:
                 timings["execute"] = (time.perf_counter() - t0) * 1e3
                 log.error("pick %d: zone stop: %s", index + 1, exc)
@@ -661,6 +669,36 @@ def _capture_order(cell: CellConfig) -> list[int]:
     order = list(range(len(cell.wrist_camera.capture_q)))
     first = cell.bin.capture if cell.bin is not None else None
     return order if first is None else [first, *(v for v in order if v != first)]
+
+
+#: GIL switch interval while an overlapped loop executes, s: the stream's ticks (every 8 ms) wait at most this long
+#: for the worker's perception and planning to hand the interpreter back (Python's default: 5 ms)
+OVERLAP_SWITCH_INTERVAL_S = 0.0005
+
+
+@contextmanager
+def _overlap_session(driver: ArmDriver | None, overlap: bool) -> Iterator[None]:
+    """Around an overlapped loop: the interpreter's switch interval lowered to `OVERLAP_SWITCH_INTERVAL_S` (restored
+    after), and with a driver, a stream left open at a plan's end (`ExecuteOptions.hold_at_end`) closed on every way
+    out."""
+    if not overlap:
+        yield
+        return
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(min(old, OVERLAP_SWITCH_INTERVAL_S))
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(old)
+        if driver is not None:
+            _end_stream(driver)
+
+
+def _end_stream(driver: ArmDriver | None) -> None:
+    """Close a stream the driver holds open (GuardedDriver.end_stream); nothing for other drivers."""
+    end = getattr(driver, "end_stream", None)
+    if callable(end):
+        end()
 
 
 # the move to a capture pose: no gripper action, the arm ends at the capture joints

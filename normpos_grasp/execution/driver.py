@@ -162,8 +162,10 @@ class ArmDriver(Protocol):
         """Run through joint waypoints (N, 6) with movej semantics (rad/s, rad/s^2); returns the final state."""
         ...
 
-    def follow_trajectory(self, times: ArrayLike, q: ArrayLike) -> ArmState:
-        """Stream time-stamped joint samples (N,), (N, 6) with servoj; returns the final state."""
+    def follow_trajectory(self, times: ArrayLike, q: ArrayLike, keep_streaming: bool = False) -> ArmState:
+        """Stream time-stamped joint samples (N,), (N, 6) with servoj; returns the final state. keep_streaming: the
+        stream stays open at the end, holding the last sample (GuardedDriver: the next trajectory goes on from there
+        without a stop and restart of the stream)."""
         ...
 
     def move_linear(self, base_from_tcp: ArrayLike, speed: float, accel: float) -> ArmState:
@@ -266,6 +268,11 @@ class GuardedDriver(abc.ABC):
         self._stop_request: tuple[str, bool, Any] | None = None
         self.stop_sent_at = -1.0  # time.monotonic() when the last requested stop was sent, s
         self._peak_qd = 0.0  # rad/s: the leading joint's speed in the last state checked (sizes an interrupt's stop)
+        # follow_trajectory(keep_streaming=True) left the stream open, holding these joints (6,) rad
+        self._hold: FloatArray | None = None
+        self._hold_sent_at = 0.0  # time.monotonic() of the last command the open stream got, s
+        # the last gripper command was an open that settled fully, and nothing has switched the gripper since
+        self._open_settled = False
 
     # ------------------------------------------------------------------ backend primitives (override)
     @abc.abstractmethod
@@ -331,13 +338,16 @@ class GuardedDriver(abc.ABC):
         return self._fault
 
     def connect(self) -> None:
+        self._open_settled = False
         self._backend_connect()
         st = self._backend_state()
         self._check_state(st, during="connect", stop=False)
 
     def disconnect(self) -> None:
         """Stop the arm if it still moves (every way out stops it first), then close the connection."""
+        self._open_settled = False
         try:
+            self.end_stream()
             # after a protective or emergency stop the controller is already bringing the arm to rest (its program
             # has ended, so a stop command would only wait for a script that no longer runs)
             safety_stopped = isinstance(self._fault, ProtectiveStop | EmergencyStop)
@@ -395,6 +405,7 @@ class GuardedDriver(abc.ABC):
 
         Raises the fault again if the controller is still stopped (protective stop not unlocked, e-stop pressed).
         """
+        self._open_settled = False
         if self._fault is not None:
             log.info("resume after %s", type(self._fault).__name__)
         if not self._backend_connected() or isinstance(self._fault, ConnectionLost):
@@ -426,9 +437,23 @@ class GuardedDriver(abc.ABC):
             time.sleep(0.002)
 
     def stop(self) -> None:
-        """Decelerate to rest (allowed even when faulted)."""
+        """Decelerate to rest (allowed even when faulted); an open stream (`keep_streaming`) is ended."""
         if self._backend_connected():
             self._backend_stop(self.options.stop_decel)
+        self.end_stream()
+
+    @property
+    def streaming(self) -> bool:
+        """A stream is open, holding the arm where the last trajectory ended (`keep_streaming=True`)."""
+        return self._hold is not None
+
+    def end_stream(self) -> None:
+        """End the stream `follow_trajectory(keep_streaming=True)` left open (the arm rests at its end); no-op when
+        none is open."""
+        if self._hold is None:
+            return
+        self._hold = None
+        self._backend_servo_end()
 
     def request_stop(self, reason: str, protective: bool = False, detail: Any = None) -> None:
         """Ask, from another thread (the zone watch), for the arm to stop; returns at once.
@@ -462,6 +487,7 @@ class GuardedDriver(abc.ABC):
 
     def move_joints(self, waypoints: ArrayLike, speed: float, accel: float, timeout_s: float | None = None) -> ArmState:
         self._require_ready()
+        self.end_stream()
         wps = np.asarray(waypoints, dtype=np.float64)
         if wps.ndim == 1:
             wps = wps[None]
@@ -486,6 +512,7 @@ class GuardedDriver(abc.ABC):
 
     def move_linear(self, base_from_tcp: ArrayLike, speed: float, accel: float) -> ArmState:
         self._require_ready()
+        self.end_stream()
         poses = np.asarray(base_from_tcp, dtype=np.float64)
         if poses.ndim == 2:
             poses = poses[None]
@@ -509,34 +536,53 @@ class GuardedDriver(abc.ABC):
             self._halt_on_exit(exc, "move_linear")
             raise
 
-    def follow_trajectory(self, times: ArrayLike, q: ArrayLike) -> ArmState:
+    def follow_trajectory(self, times: ArrayLike, q: ArrayLike, keep_streaming: bool = False) -> ArmState:
         """Stream a time-parameterised joint trajectory with servoj at `stream_period_s`, then settle on its end.
 
         The trajectory is checked whole before the first sample is sent (limits, workspace, speed and acceleration
         caps, and its start must be the current joints). While streaming, the controller-side watchdog stops the
         program if this process stalls. A late tick slows the trajectory's clock instead of skipping ahead, so the servo
         target never jumps; a gap longer than `watchdog_s` stops the arm with a DriverTimeout.
+
+        keep_streaming: once the arm has settled on the end, the stream stays open, holding it there (the gripper
+        calls keep sending that target within the watchdog while they wait), and the next `follow_trajectory` goes on
+        in the same stream: no servo stop and control-script restart between trajectories (about 0.12 s each on the
+        loopback controller). Any other motion call, `stop`, `disconnect`, a fault or `end_stream` ends it; a stream
+        left without a command for half of `watchdog_s` is restarted by the next trajectory (as without it).
         """
         self._require_ready()
-        t = np.asarray(times, dtype=np.float64).reshape(-1)
-        qs = np.asarray(q, dtype=np.float64).reshape(-1, 6)
-        self.limits.check_trajectory(t, qs)
-        start = self.state()
-        self._check_state(start, during="stream start", stop=False)
-        gap = float(np.max(np.abs(qs[0] - start.q)))
-        if gap > 0.01:
-            raise SafetyViolation(
-                f"trajectory starts {gap:.4f} rad away from the current joints (> 0.01 rad); move there first",
-                detail={"start": qs[0], "current": start.q},
-            )
-        period = self.options.stream_period_s
-        grid, samples = stream_samples(t, qs, period)
-        # What is streamed is checked too: the commands, at the times they are sent, within the same caps.
-        self.limits.check_trajectory(grid, samples, "streamed commands")
+        if self._hold is not None and time.monotonic() - self._hold_sent_at > 0.5 * self.options.watchdog_s:
+            # nothing was sent for half the stream watchdog (the caller was busy): restart the stream rather than
+            # race the controller's watchdog
+            log.info("open stream idle %.3f s: restarted", time.monotonic() - self._hold_sent_at)
+            self.end_stream()
+        held = self._hold is not None
+        try:
+            t = np.asarray(times, dtype=np.float64).reshape(-1)
+            qs = np.asarray(q, dtype=np.float64).reshape(-1, 6)
+            self.limits.check_trajectory(t, qs)
+            start = self.state()
+            self._check_state(start, during="stream start", stop=False)
+            gap = float(np.max(np.abs(qs[0] - start.q)))
+            if gap > 0.01:
+                raise SafetyViolation(
+                    f"trajectory starts {gap:.4f} rad away from the current joints (> 0.01 rad); move there first",
+                    detail={"start": qs[0], "current": start.q},
+                )
+            period = self.options.stream_period_s
+            grid, samples = stream_samples(t, qs, period)
+            # What is streamed is checked too: the commands, at the times they are sent, within the same caps.
+            self.limits.check_trajectory(grid, samples, "streamed commands")
+        except BaseException:
+            self.end_stream()  # nothing of this trajectory was sent: an open stream ends at rest where it held
+            raise
         self.commands_sent += 1
-        self._backend_servo_begin()
+        self._hold = None
+        if not held:
+            self._backend_servo_begin()
         t0 = time.monotonic()
         slowed_s = 0.0
+        settled = False
         try:
             for k, target in enumerate(samples):
                 deadline = t0 + k * period
@@ -562,11 +608,17 @@ class GuardedDriver(abc.ABC):
             if slowed_s > 0:
                 log.info("trajectory stream ran %.3f s slower than planned (late ticks)", slowed_s)
             self._settle_servo(samples[-1])
+            settled = True
         except BaseException as exc:
             self._halt_on_exit(exc, "follow_trajectory")
             raise
         finally:
-            self._backend_servo_end()
+            if not (settled and keep_streaming):
+                self._backend_servo_end()
+        if keep_streaming:
+            self._hold = np.array(samples[-1], dtype=np.float64)
+            self._hold_sent_at = time.monotonic()
+            return self._backend_state()  # at rest on the end (the settle checked the state it read)
         try:
             return self._monitor(
                 qs[-1], self.options.move_margin_s, "follow_trajectory", tol=10 * self.options.arrive_tol_rad
@@ -588,6 +640,7 @@ class GuardedDriver(abc.ABC):
     # ------------------------------------------------------------------ gripper
     def gripper_close(self) -> None:
         self._require_ready()
+        self._open_settled = False
         g = self.gripper
         if g.open_output is not None:
             self._backend_set_output(g.open_output, False, g.tool)
@@ -595,12 +648,25 @@ class GuardedDriver(abc.ABC):
         self._wait_io(g.settle_s)
 
     def gripper_open(self) -> None:
+        """Switch the outputs to open and wait `settle_s`. When the last gripper command was an open that settled
+        and the controller's outputs still read open, no output changes and there is nothing to wait for: returns at
+        once (the open before each plan, right after the last plan's place opened the gripper)."""
         self._require_ready()
         g = self.gripper
+        if self._open_settled and self._outputs_read_open(self.state().digital_out):
+            return
+        self._open_settled = False
         self._backend_set_output(g.close_output, False, g.tool)
         if g.open_output is not None:
             self._backend_set_output(g.open_output, True, g.tool)
         self._wait_io(g.settle_s)
+        self._open_settled = True
+
+    def _outputs_read_open(self, bits: int) -> bool:
+        g = self.gripper
+        shift = 16 if g.tool else 0
+        closed = bool(bits >> (g.close_output + shift) & 1)
+        return not closed and (g.open_output is None or bool(bits >> (g.open_output + shift) & 1))
 
     def grip_detected(self) -> bool:
         """True when the grip-detect input is high; DriverFault if the gripper has no such input."""
@@ -610,10 +676,21 @@ class GuardedDriver(abc.ABC):
         return bool(self.state().digital_in >> g.grip_detect_input & 1)
 
     def _wait_io(self, settle_s: float) -> None:
+        """Wait `settle_s` watching the state; an open stream (`keep_streaming`) gets its hold target every stream
+        period meanwhile (the controller's stream watchdog)."""
         end = time.monotonic() + settle_s
-        while time.monotonic() < end:
-            self._check_state(self.state(), during="gripper", stop=True)
-            time.sleep(min(0.02, max(0.0, end - time.monotonic())))
+        try:
+            while time.monotonic() < end:
+                self._check_state(self.state(), during="gripper", stop=True)
+                if self._hold is not None:
+                    self._backend_servo(self._hold, self.options.stream_period_s)
+                    self._hold_sent_at = time.monotonic()
+                    time.sleep(min(self.options.stream_period_s, max(0.0, end - time.monotonic())))
+                else:
+                    time.sleep(min(0.02, max(0.0, end - time.monotonic())))
+        except BaseException:
+            self.end_stream()
+            raise
 
     # ------------------------------------------------------------------ monitoring
     def _require_ready(self) -> None:
@@ -627,7 +704,14 @@ class GuardedDriver(abc.ABC):
 
     def _latch(self, fault: DriverFault) -> DriverFault:
         self._fault = fault
+        self._open_settled = False
         log.info("driver fault latched: %s", fault)
+        if self._hold is not None:  # the stream was open: the stop that came with the fault ended its motion
+            self._hold = None
+            try:
+                self._backend_servo_end()
+            except (OSError, RuntimeError, DriverFault) as exc:
+                log.warning("ending the open stream after %s failed: %s", type(fault).__name__, exc)
         return fault
 
     def _check_state(self, st: ArmState, during: str, stop: bool) -> None:

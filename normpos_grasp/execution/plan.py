@@ -22,8 +22,8 @@ from normpos_grasp.errors import DriverFault, InputError, SafetyViolation
 from normpos_grasp.typing import FloatArray
 from normpos_grasp.validation import as_float_array, check_pose
 
-from .driver import ArmDriver
-from .gripper_config import ToolDriver, arm_watch
+from .driver import ArmDriver, GuardedDriver
+from .gripper_config import ArmIOGripper, ToolDriver, arm_watch
 from .safety import SafetyLimits
 
 log = logging.getLogger(__name__)
@@ -34,7 +34,9 @@ class ExecuteOptions:
     """How a plan is run. speed (rad/s) and accel (rad/s^2): movej caps between waypoints when the plan has no
     trajectory (and for the approach to its first waypoint). close_at / open_at: waypoint names after which the
     gripper closes / opens. start_tol_rad: farther than this from the first waypoint, the arm first moves there.
-    final_tol_rad: the executed plan must end this close to its last waypoint (else DriverFault)."""
+    final_tol_rad: the executed plan must end this close to its last waypoint (else DriverFault). hold_at_end: where
+    the plan runs in one stream, leave it open at the end, holding the arm there, so that the next plan (starting
+    there) goes on in it (the caller ends it otherwise: `GuardedDriver.end_stream`)."""
 
     speed: float = 0.8
     accel: float = 1.2
@@ -44,6 +46,7 @@ class ExecuteOptions:
     start_tol_rad: float = 1e-3
     final_tol_rad: float = 1e-3
     check_grip: bool = True
+    hold_at_end: bool = False
 
 
 @dataclass(frozen=True)
@@ -230,6 +233,13 @@ def execute_plan(
     arm driver's digital outputs and its grip-detect input. The whole plan is checked before the first command.
     Faults raise the driver's typed DriverFault subclass (ProtectiveStop, EmergencyStop, ConnectionLost,
     DriverTimeout, GripperFault) with the arm stopped.
+
+    A timed plan is streamed piece by piece between the gripper's waypoints (the arm rests at each before the
+    gripper acts). Where the gripper is switched by the arm driver's own outputs (gripper None or an ArmIOGripper
+    on `driver`, a GuardedDriver), the pieces run in one stream (`follow_trajectory(keep_streaming=True)`): the
+    stream holds the arm at rest at the grasp and the place while the gripper settles, with no stop and restart of
+    the stream between the pieces; it ends at the plan's end (with `options.hold_at_end` it stays open there when the
+    plan ran to its end, for the next plan to go on in) or when the pick stops.
     """
     opts = options or ExecuteOptions()
     parsed = parse_plan(plan)
@@ -269,6 +279,38 @@ def execute_plan(
         else:
             driver.gripper_open()
         steps.append(StepRecord(parsed.names[0], "gripper_open", time.monotonic() - t0))
+    one_stream = isinstance(driver, GuardedDriver) and (
+        gripper is None or (isinstance(gripper, ArmIOGripper) and gripper.arm is driver)
+    )
+    report: ExecutionReport | None = None
+    try:
+        report = _run_steps(
+            driver, parsed, segments, opts, gripper, opening, watch, (speed, accel), steps, messages, sent0, one_stream
+        )
+        return report
+    finally:
+        held = opts.hold_at_end and report is not None and report.status == "executed"
+        if one_stream and isinstance(driver, GuardedDriver) and not held:
+            driver.end_stream()  # every other way out leaves the stream closed (a no-op after the last piece)
+
+
+def _run_steps(
+    driver: ArmDriver,
+    parsed: ParsedPlan,
+    segments: list[tuple[FloatArray, FloatArray]] | None,
+    opts: ExecuteOptions,
+    gripper: ToolDriver | None,
+    opening: float | None,
+    watch: Any,
+    movej: tuple[float, float],
+    steps: list[StepRecord],
+    messages: list[str],
+    sent0: int,
+    one_stream: bool,
+) -> ExecutionReport:
+    """The waypoints of `parsed` after the first: streamed pieces (or movej at `movej` = (speed, accel)), the
+    gripper at its waypoints; `one_stream`: the pieces before the last keep the stream open."""
+    speed, accel = movej
     grip: bool | None = None
     stream_from = 0  # index of the waypoint the current trajectory stream starts at
     for k in range(1, len(parsed.q)):
@@ -280,7 +322,12 @@ def execute_plan(
             seg_t = np.concatenate([segments[i][0][(1 if i > stream_from else 0) :] for i in range(stream_from, k)])
             seg_q = np.concatenate([segments[i][1][(1 if i > stream_from else 0) :] for i in range(stream_from, k)])
             stream_from = k
-            st = driver.follow_trajectory(seg_t, seg_q) if len(seg_t) > 1 else driver.state()
+            if len(seg_t) <= 1:
+                st = driver.state()
+            elif one_stream and (k < len(parsed.q) - 1 or opts.hold_at_end):
+                st = driver.follow_trajectory(seg_t, seg_q, keep_streaming=True)
+            else:
+                st = driver.follow_trajectory(seg_t, seg_q)
             kind = "trajectory"
         else:
             st = driver.move_joints(parsed.q[k][None], speed, accel)
