@@ -80,7 +80,7 @@ def left_parts(
         ious = [mask_iou(inst.mask, mask) for inst in instances]
         k = int(np.argmax(ious)) if ious else -1
         if k < 0 or ious[k] < match_iou:
-            best = "an instance covers part of it" if k >= 0 and ious[k] > 0 else "no instance covers it"
+            best = "partly covered" if k >= 0 and ious[k] > 0 else "no instance"
             out.append(LeftPart(name, "mask", f"not segmented ({best})"))
             continue
         iid = instances[k].instance_id
