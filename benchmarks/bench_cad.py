@@ -10,7 +10,8 @@ surface sample, minimised over the template's symmetries, continuous axes every 
 to it; te / re are symmetry-aware (bench_fit.sym_errors). Printed per part and overall: recall, precision,
 median te / re, precision against score, wall time per frame (median) with the machine's load average.
 Modes (--modes): 'none' (no segmenter), 'model' (the bundled model's masks as hints), 'depth' (the depth
-segmenter's as hints).
+segmenter's as hints), 'depth-fit' (no cad detector: the depth segmenter's segments measured and fitted by
+`pipeline.perceive`, the path `auto` falls back to, for comparison).
 
 LM-O part: the real Kinect frame (/work/shared/data/lmo_sample, BOP), all LM-O templates of its models folder in the
 library, the table plane from the can's ground truth as ROI plane (the frame has no extrinsics), the depth bias from
@@ -64,6 +65,7 @@ def bin_roi(so: object) -> RegionOfInterest:
 
 def synthetic(frames: int, count: int, seed: int, modes: list[str]) -> None:
     from normpos_grasp.perception.factory import make_segmenter
+    from normpos_grasp.pipeline import perceive
     from normpos_grasp.sim.cameras import CameraOptions
     from normpos_grasp.sim.dataset import generate_frame
     from normpos_grasp.sim.scene import SceneOptions
@@ -71,7 +73,7 @@ def synthetic(frames: int, count: int, seed: int, modes: list[str]) -> None:
     library = heldout_library()
     for t in library:
         prepare(t)
-    hint_seg = {m: make_segmenter(m) for m in modes if m != "none"}
+    hint_seg = {m: make_segmenter("depth" if m == "depth-fit" else m) for m in modes if m != "none"}
     scenes = []
     for f in range(frames):
         so = SceneOptions(count=count, seed=seed * 1000 + f, clutter=0.5)
@@ -90,9 +92,13 @@ def synthetic(frames: int, count: int, seed: int, modes: list[str]) -> None:
         n_acc = n_right = 0
         for so, sf in scenes:
             det.roi = bin_roi(so)
-            hints = hint_seg[mode].segment(sf.frame) if mode != "none" else None
             t0, c0 = time.perf_counter(), time.process_time()
-            res = det.detect(sf.frame, hint_instances=hints)
+            if mode == "depth-fit":  # no cad: the depth segmenter's segments measured and fitted (pipeline.perceive)
+                fits = [f for f in perceive(sf.frame, hint_seg[mode], library).fits if f.accepted]
+            else:
+                hints = hint_seg[mode].segment(sf.frame) if mode != "none" else None
+                t0, c0 = time.perf_counter(), time.process_time()
+                fits = det.detect(sf.frame, hint_instances=hints).fits
             walls.append(time.perf_counter() - t0)
             cpus.append(time.process_time() - c0)
             loads.append(os.getloadavg()[0])
@@ -100,7 +106,7 @@ def synthetic(frames: int, count: int, seed: int, modes: list[str]) -> None:
             gts = sf.world_from_object
             targets = [k for k in range(len(templates)) if sf.visib_fractions[k] >= 0.3]
             hit: dict[int, tuple[float, float, float, float, float]] = {}
-            for fit in res.fits:
+            for fit in fits:
                 n_acc += 1
                 best = None
                 for k, t in enumerate(templates):
@@ -218,7 +224,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=4)
     ap.add_argument("--count", type=int, default=10)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--modes", default="none,model", help="comma-separated: none, model, depth")
+    ap.add_argument("--modes", default="none,model", help="comma-separated: none, model, depth, depth-fit")
     ap.add_argument("--no-lmo", action="store_true")
     args = ap.parse_args()
     if args.frames > 0:

@@ -5,8 +5,9 @@ template fit), 'cad' (the library's CAD templates found in the whole region of i
 `perception.cad_detector.CadDetector`; `pipeline.perceive` hands it the library and takes its poses as the fits),
 'gt' (the data's own true masks: needs `ground_truth`, a BOP scene or a synthetic source), and 'auto' (the model when
 it loads and knows every label of the library, else the depth segmenter, with a warning). 'auto' does not fall back
-to 'cad': on held-out piles (benchmarks/bench_cad.py) the cad detector still accepts wrong poses (precision 0.56)
-and takes seconds per frame, so it is chosen only by name until its figures reach its targets (docs/cad_detection.md).
+to 'cad': on held-out piles (benchmarks/bench_cad.py) the cad detector still accepts wrong poses (precision 0.72;
+the depth segmenter's fitted segments 1.0 on the same frames) and takes seconds per frame, so it is chosen only by
+name until its figures reach its targets (docs/cad_detection.md).
 """
 
 from __future__ import annotations
