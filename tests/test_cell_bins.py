@@ -8,6 +8,7 @@ import copy
 import logging
 from dataclasses import replace
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -223,3 +224,24 @@ def test_bins_region_covers_every_bin() -> None:
     pose, size = one.bins_region(0.15)  # type: ignore[misc]
     assert np.allclose(size, [0.4, 0.3, 0.3]) and np.allclose(pose[:3, 3], [0.5, 0.0, 0.16])
     assert copy.deepcopy(size).shape == (3,)
+
+
+def test_a_two_bin_turn_replays_from_the_bin_it_started_at(tmp_path: Path) -> None:
+    """The second turn starts at bin 'right' (the bin after the one picked first): its bundle records that, and
+    the replay plans from 'right' byte for byte as the loop did."""
+    from normpos_grasp.pipeline import PipelineOptions
+    from normpos_grasp.replay import BundleRecorder, assert_replays, load_bundle
+
+    library = default_part_library()
+    source = SyntheticBinSource(CELL, count=2, seed=3, validate_physics=False, library=library)
+    segmenter = source.ground_truth_segmenter()
+    with BundleRecorder(tmp_path / "bundles", segmenter) as recorder:
+        records = run_cell_loop(
+            CELL, source, segmenter, library, None, max_picks=2, options=PipelineOptions(fit_workers=1),
+            bundles=recorder,
+        )  # fmt: skip
+    assert [(r.plan_json or {}).get("bin") for r in records] == ["left", "right"]
+    second = load_bundle(recorder.saved[1])
+    assert second.cell.bin is not None and second.cell.bin.name == "right"
+    report = assert_replays(second)
+    assert report.plan_json is not None and report.plan_json["bin"] == "right"

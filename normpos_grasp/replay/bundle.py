@@ -292,6 +292,8 @@ def _write_contents(
                 }
                 for b in cell.static_boxes
             ],
+            # several bins: the bin the turn planned from first (the loop takes the bins in turn)
+            **({"bin": cell.bin.name} if cell.bin is not None and len(cell.bins) > 1 else {}),
         },
         "segmenter": segmenter,
         "library": library,
@@ -651,7 +653,13 @@ def _with_state(cell: CellConfig, state: Any, root: Path) -> CellConfig:
         BoxSpec(str(b["name"]), np.asarray(b["world_from_box"], dtype=np.float64), np.asarray(b["size"], dtype=float))
         for b in state["static_boxes"]
     )
-    return replace(cell, places=tuple(by_name[n] for n in names), static_boxes=boxes)
+    out = replace(cell, places=tuple(by_name[n] for n in names), static_boxes=boxes)
+    if "bin" in state:
+        try:
+            out = out.picking_from(str(state["bin"]))
+        except InputError as exc:
+            raise BundleError(f"bundle {root}: {exc}") from exc
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- helpers
