@@ -127,3 +127,15 @@ def test_nms_keeps_distinct_poses_and_drops_symmetric_copies() -> None:
     assert np.allclose(sc, [5.0, 2.0, 1.0])  # the best of the two copies, then the others by score
     kept, sc = ppf.nms_poses(poses, np.array([3.0, 5.0, -1.0, 2.0]), prep.centroid, 0.01, np.deg2rad(10), 1, prep.sym)
     assert len(kept) == 1 and sc[0] == 5.0
+
+
+def test_vectorised_reference_frames_match_the_scalar_ones() -> None:
+    rng = np.random.default_rng(2)
+    n = rng.normal(size=(50, 3))
+    n[:3] = [[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0]]  # the degenerate axes and a plain one
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = rng.normal(size=(50, 3))
+    fast = ppf.frames_to_x(p, n)
+    slow = np.stack([ppf._frame_to_x(a, b) for a, b in zip(p, n, strict=True)])
+    assert np.allclose(fast, slow, atol=1e-12)
+    assert np.allclose(np.einsum("nij,nj->ni", fast[:, :3, :3], n), [1.0, 0.0, 0.0], atol=1e-9)

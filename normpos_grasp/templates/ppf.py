@@ -99,6 +99,38 @@ def _frame_to_x(p: FloatArray, n: FloatArray) -> FloatArray:
     return t
 
 
+def frames_to_x(p: FloatArray, n: FloatArray) -> FloatArray:
+    """(N, 4, 4) rigid T per point p (N, 3) with unit normal n (N, 3): T p = 0 and R n = +x (`_rot_to_x`, vectorised;
+    the same matrices as `_frame_to_x` row by row)."""
+    m = len(p)
+    out = np.tile(np.eye(4), (m, 1, 1))
+    if m == 0:
+        return out
+    c = n[:, 0]
+    s = np.sqrt(n[:, 1] ** 2 + n[:, 2] ** 2)
+    deg = s < 1e-9
+    safe = np.where(deg, 1.0, s)
+    k1, k2 = n[:, 2] / safe, -n[:, 1] / safe
+    v = 1.0 - c
+    r = out[:, :3, :3]
+    r[:, 0, 0] = c
+    r[:, 0, 1] = -k2 * s
+    r[:, 0, 2] = k1 * s
+    r[:, 1, 0] = k2 * s
+    r[:, 1, 1] = c + k1 * k1 * v
+    r[:, 1, 2] = k1 * k2 * v
+    r[:, 2, 0] = -k1 * s
+    r[:, 2, 1] = k1 * k2 * v
+    r[:, 2, 2] = c + k2 * k2 * v
+    if deg.any():  # n along +-x: identity, or a half turn about z for -x
+        r[deg] = np.eye(3)
+        flip = deg & (c < 0)
+        r[flip, 0, 0] = -1.0
+        r[flip, 1, 1] = -1.0
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", r, p)
+    return out
+
+
 @numba.njit(cache=True, nogil=True)
 def _rot_to_x(n0, n1, n2):  # type: ignore[no-untyped-def]
     """(3, 3) rotation taking the unit vector n onto +x (about the axis n x x)."""
@@ -280,7 +312,7 @@ def vote_poses(
     alpha = (out_a.reshape(-1)[ok] + 0.5) * (2.0 * np.pi / N_ALPHA)
     votes = out_v.reshape(-1)[ok].astype(np.float64)
     # T_s: scene reference point to the origin, its normal to +x
-    ts = np.stack([_frame_to_x(spts[i], snrm[i]) for i in ref_rep]) if len(ref_rep) else np.zeros((0, 4, 4))
+    ts = frames_to_x(spts[ref_rep], snrm[ref_rep])
     rx = np.tile(np.eye(4), (len(alpha), 1, 1))
     c, s = np.cos(alpha), np.sin(alpha)
     rx[:, 1, 1], rx[:, 1, 2], rx[:, 2, 1], rx[:, 2, 2] = c, -s, s, c
