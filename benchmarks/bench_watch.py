@@ -3,7 +3,8 @@
 Scenario: the packaged ur5e_bin_parallel cell, its camera at 320x240 (D435 intrinsics scaled, D435 noise model of
 normpos_grasp.sim.sensor at that focal length), a bin with six part-sized boxes, the arm running a pick cycle (home
 -> above the bin -> grasp -> above the bin -> out of view towards the place -> home, joint-space moves at up to 2
-rad/s). Watched: the bin (to 0.5 m), an operator-side strip, and a 10 cm band around the arm; margin 2 cm.
+rad/s). Watched: the bin (to 0.5 m), an operator-side strip, and a 10 cm band around the arm; margin 2 cm; the
+detector's approach band (13 cm around each zone box, docs/watch.md) on, as by default.
 
 1. Intrusions (--trials, half hand-sized boxes at 2.0 m/s, half person-sized shapes at 1.6 m/s: ISO 13855's
    approach speeds), entering a zone at a random time of the cycle from a random side. Frames at 30 fps, each
