@@ -379,6 +379,7 @@ def run_cell_loop(
         if on_pick is not None:
             on_pick(record)
         if bundles is not None:  # the cell as this turn planned in (pattern slots used so far, parts left there)
+            _end_stream(driver)  # saving takes a while: no stream held open meanwhile
             bundles.save(record, cycle_cell, templates, options or PipelineOptions())
 
     # overlap: every capture and the worker run on one thread (a renderer's GL context stays on its thread)
@@ -607,6 +608,8 @@ class _Lookahead:
         """Wait for the worker (the execution has returned); its exception is raised after `driver.stop()`."""
         t0 = time.perf_counter()
         self._go.set()
+        if driver is not None and self._future is not None and not self._future.done():
+            _end_stream(driver)  # the worker is still at it: no stream held open while the loop waits
         self._join()
         self.wait_ms = (time.perf_counter() - t0) * 1e3
         if self.error is not None:
