@@ -148,8 +148,7 @@ class IntrusionDetector:
             z = d[v, u]
             zone = self._zone_of_pixels(v, u, z, q, held_radius_m)
             inside = zone >= 0
-            # the approach band: candidates outside every zone within approach_m of a zone box
-            # distance to the nearest zone box of each candidate outside them; within approach_m: the approach band
+            # distance to the nearest zone box of each candidate outside every zone; within approach_m: the band
             track = self.approach_m > 0 and len(self.zones.names) > 0
             gap = np.zeros(len(v))
             near = inside.copy()
