@@ -114,12 +114,34 @@ def test_suction_seal_on_the_fitted_surface(parts: dict[str, Template]) -> None:
     on_annulus = tcp_frame(DOWN, np.array([1.0, 0, 0]), ring_pose[:3, 3] + [0.024, 0.0, 0.0075])
     mech = suction_mechanics(ring.mesh, ring.mass_kg, ring_pose, on_annulus)
     assert not mech.ok and mech.reason == "seal"
-    # a 10 mm cup seals on the annulus, but 24 mm off the centre of mass the ring's weight peels it off
-    small = suction_mechanics(ring.mesh, ring.mass_kg, ring_pose, on_annulus, QualityOptions(cup_diameter_m=0.01))
+    # on an exact fit (no margin for its error) a 10 mm cup seals on the annulus, but 24 mm off the centre of mass
+    # the ring's weight peels it off
+    exact = QualityOptions(cup_diameter_m=0.01, seal_margin_m=0.0)
+    small = suction_mechanics(ring.mesh, ring.mass_kg, ring_pose, on_annulus, exact)
     assert not small.ok and small.reason == "suction_torque", small
     plate_pose = make_pose(None, [0.5, 0.0, 0.014])
     on_face = tcp_frame(DOWN, np.array([1.0, 0, 0]), plate_pose[:3, 3] + [0.0, 0.0, 0.004])
     assert suction_mechanics(plate.mesh, plate.mass_kg, plate_pose, on_face).ok
+
+
+def test_suction_seal_leaves_room_for_the_fit_error() -> None:
+    import trimesh
+
+    from normpos_grasp.records.tool import suction_tool
+
+    # a 60 x 30 mm top face: a 30 mm cup seals only on an exact fit, so it is refused; a 24 mm cup keeps 3 mm a side
+    block = Template("block", "block", trimesh.creation.box((0.06, 0.03, 0.04)), shape="box", mass_kg=0.2)
+    pose = make_pose(None, [0.5, 0.0, 0.02])
+    centre = tcp_frame(DOWN, np.array([1.0, 0, 0]), pose[:3, 3] + [0.0, 0.0, 0.02])
+    exact = QualityOptions(cup_diameter_m=0.03, seal_margin_m=0.0)
+    assert suction_mechanics(block.mesh, block.mass_kg, pose, centre, exact).ok
+    mech = suction_mechanics(block.mesh, block.mass_kg, pose, centre, QualityOptions(cup_diameter_m=0.03))
+    assert not mech.ok and mech.reason == "seal"
+    assert suction_mechanics(block.mesh, block.mass_kg, pose, centre, QualityOptions(cup_diameter_m=0.024)).ok
+    # judge takes the tool's own cup: 24 mm seals there, 40 mm does not (whatever the options' default cup)
+    small, large = suction_tool("cup24", 0.15, cup_diameter_m=0.024), suction_tool("cup40", 0.15, cup_diameter_m=0.04)
+    assert judge("suction", block.mesh, block.mass_kg, pose, centre, small).ok
+    assert judge("suction", block.mesh, block.mass_kg, pose, centre, large).reason == "seal"
 
 
 def test_suction_payload_torque(parts: dict[str, Template]) -> None:
@@ -131,8 +153,8 @@ def test_suction_payload_torque(parts: dict[str, Template]) -> None:
     centre = tcp_frame(DOWN, np.array([1.0, 0, 0]), pose[:3, 3] + [0.0, 0.0, 0.015])
     assert suction_mechanics(block.mesh, block.mass_kg, pose, centre).ok
     off = centre.copy()
-    off[0, 3] += 0.025
-    mech = suction_mechanics(block.mesh, block.mass_kg, pose, off)
+    off[0, 3] += 0.025  # the cup's lip reaches the block's edge: judged on an exact fit, no margin for its error
+    mech = suction_mechanics(block.mesh, block.mass_kg, pose, off, QualityOptions(seal_margin_m=0.0))
     assert not mech.ok and mech.reason == "suction_torque"
     heavy = replace(block, mass_kg=4.0)
     assert suction_mechanics(heavy.mesh, heavy.mass_kg, pose, centre).reason == "suction_load"

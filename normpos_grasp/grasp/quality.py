@@ -30,7 +30,7 @@ Newtons, metres, kilograms, radians.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
@@ -61,7 +61,10 @@ class QualityOptions:
     touched (pad compliance and fit noise), m; min_area_m2: least touched area inside the pad's friction cone, per
     pad, m^2; samples: surface samples per template; load_factor: weight multiplier for the accelerations of lift
     and transfer; cup_diameter_m, vacuum_kpa, vacuum_efficiency: the suction cup (defaults: the physics judge's
-    cup); seal_flatness_m / seal_normal_rad: the seal criteria (`sim.physics_suction.SealOptions`).
+    cup; `judge` takes the tool's own cup); seal_flatness_m / seal_normal_rad: the seal criteria
+    (`sim.physics_suction.SealOptions`); seal_margin_m: the error of the fitted pose the seal must tolerate: the
+    footprint checked is the cup widened by this on every side (a 30 mm cup on a 30 mm face seals only when the fit
+    is exact, and a real part sits a millimetre or two from its fit), m.
     """
 
     friction: float = 0.9
@@ -77,6 +80,7 @@ class QualityOptions:
     vacuum_efficiency: float = 0.8
     seal_flatness_m: float = 0.004
     seal_normal_rad: float = 0.45
+    seal_margin_m: float = 0.002
 
 
 @dataclass(frozen=True)
@@ -222,7 +226,8 @@ def suction_mechanics(
     options: QualityOptions | None = None,
 ) -> GraspMechanics:
     """Mechanics of a suction grasp at `world_from_tcp` (4, 4) on `mesh` posed at `world_from_object` (4, 4): the
-    seal on the fitted surface, then weight and payload torque against the vacuum."""
+    seal on the fitted surface (the cup widened by `seal_margin_m` on every side), then weight and payload torque
+    against the vacuum."""
     import trimesh
 
     from normpos_grasp.sim.physics_suction import SealOptions, check_seal, vacuum_force_n
@@ -234,7 +239,7 @@ def suction_mechanics(
     seal = check_seal(
         mesh_world,
         w_tcp,
-        opts.cup_diameter_m,
+        opts.cup_diameter_m + 2.0 * opts.seal_margin_m,
         SealOptions(flatness_m=opts.seal_flatness_m, max_normal_angle_rad=opts.seal_normal_rad),
     )
     r = opts.cup_diameter_m / 2.0
@@ -277,7 +282,11 @@ def judge(
     tool: ToolModel,
     options: QualityOptions | None = None,
 ) -> GraspMechanics:
-    """Mechanics verdict of one candidate: `parallel_mechanics` or `suction_mechanics` by scheme."""
+    """Mechanics verdict of one candidate: `parallel_mechanics` or `suction_mechanics` by scheme (with the tool's
+    own cup where it gives one)."""
     if scheme == "suction":
-        return suction_mechanics(mesh, mass_kg, world_from_object, world_from_tcp, options)
+        opts = options or QualityOptions()
+        if tool.cup_diameter_m > 0.0:
+            opts = replace(opts, cup_diameter_m=float(tool.cup_diameter_m))
+        return suction_mechanics(mesh, mass_kg, world_from_object, world_from_tcp, opts)
     return parallel_mechanics(mesh, mass_kg, world_from_object, world_from_tcp, pad_footprint(tool), options)

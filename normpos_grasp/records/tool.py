@@ -36,7 +36,8 @@ class ToolShape:
 class ToolModel:
     """End effector: `kind` 'parallel' or 'suction'; `flange_from_tcp` (4, 4); stroke_m / min_opening_m: jaw
     opening range (m, 0 for suction); `shapes`: boxes in the TCP frame at zero opening; finger_depth_m: how far
-    the fingers reach past the TCP along z (m); payload_kg: rated payload."""
+    the fingers reach past the TCP along z (m); payload_kg: rated payload; cup_diameter_m: the suction cup's lip
+    diameter (m; 0 for parallel jaws)."""
 
     name: str
     kind: str
@@ -47,6 +48,7 @@ class ToolModel:
     finger_depth_m: float = 0.0
     max_grip_depth_m: float = 0.03
     payload_kg: float = 3.0
+    cup_diameter_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in ("parallel", "suction"):
@@ -153,6 +155,7 @@ def suction_tool(
         shapes=shapes,
         max_grip_depth_m=0.0,
         payload_kg=payload_kg,
+        cup_diameter_m=cup_diameter_m,
     )
 
 
@@ -184,4 +187,5 @@ def tool_from_gripper(gripper: Any) -> ToolModel:
         finger_depth_m=depth,
         max_grip_depth_m=max(length * 0.6, 0.0),
         payload_kg=float(getattr(gripper, "payload_kg", 3.0)),
+        cup_diameter_m=float(getattr(gripper, "cup_diameter_m", 0.0)) if kind == "suction" else 0.0,
     )

@@ -224,6 +224,8 @@ def gripper_spec(cell: Any, override: str) -> GripperSpec:
     spec = GripperSpec.preset("suction" if cell.tool.kind == "suction" else "2f85")
     if cell.tool.kind == "parallel" and cell.tool.stroke_m > 0:
         spec = replace(spec, stroke_m=float(cell.tool.stroke_m))
+    if cell.tool.kind == "suction" and cell.tool.cup_diameter_m > 0:
+        spec = replace(spec, cup_diameter_m=float(cell.tool.cup_diameter_m))  # the cell's own cup, not the preset's
     return spec
 
 
