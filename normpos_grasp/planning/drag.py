@@ -17,9 +17,7 @@ import numpy as np
 
 from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
-from normpos_grasp.kinematics.arm import ArmModel
-from normpos_grasp.planning.plan import PlanOptions, build_world
-from normpos_grasp.planning.push import Push
+from normpos_grasp.planning.push import Push, perceived_world
 from normpos_grasp.records.normpos import NormPosition
 from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.records.template import TemplateFit
@@ -100,11 +98,7 @@ def drag_candidates(
         if cell.bin is None and targets:
             raise InputError("planning a drag needs a cell with a bin")
         return
-    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
-    world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
-    world.set_arm(arm)
-    world.set_tool(cell.tool)
-    world.update()
+    world, _ = perceived_world(cell, fits, normpositions)
     tips = _tip_points(cell)
     world_from_bin = np.asarray(cell.bin.world_from_bin, dtype=np.float64)
     inner = np.asarray(cell.bin.inner_size, dtype=np.float64)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -46,6 +47,19 @@ class Push:
     press_m: float = 0.0
 
 
+def perceived_world(
+    cell: CellConfig, fits: Sequence[TemplateFit], normpositions: Sequence[NormPosition]
+) -> tuple[Any, ArmModel]:
+    """The collision world of a nudge (push or drag), from the perceived scene only: the cell, the fits and the
+    unexplained measured points (unmatched objects kept), with the cell's arm and tool set; and that arm."""
+    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
+    world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
+    world.set_arm(arm)
+    world.set_tool(cell.tool)
+    world.update()
+    return world, arm
+
+
 def plan_push(
     plan: PickPlan,
     fits: Sequence[TemplateFit],
@@ -79,13 +93,9 @@ def push_candidates(
     targets = list(plan.targets)
     if not targets:
         return
-    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
-    world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
-    world.set_arm(arm)
-    world.set_tool(cell.tool)
-    world.update()
     if cell.bin is None:
         raise InputError("planning a push needs a cell with a bin")
+    world, _ = perceived_world(cell, fits, normpositions)
     tip = float(getattr(cell.tool, "finger_depth_m", 0.0) or hand.tip_beyond_tcp_m)
     half_width = hand.finger_width_m / 2.0
     bin_xy = np.asarray(cell.bin.world_from_bin, dtype=np.float64)[:2, 3]
@@ -161,11 +171,7 @@ def push_motion(
     from normpos_grasp.planning.rrt import plan_joint_motion
 
     opts = PlanOptions()
-    arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
-    world, _, _ = build_world(cell, list(fits), list(normpositions), arm, PlanOptions(pick_unmatched=True))
-    world.set_arm(arm)
-    world.set_tool(cell.tool)
-    world.update()
+    world, arm = perceived_world(cell, fits, normpositions)
     tcp_from_flange = invert_pose(cell.tool.flange_from_tcp)
     start = np.asarray(push.world_from_tcp, dtype=np.float64)
     above = start.copy()
