@@ -198,3 +198,22 @@ def test_mechanics_agree_with_mujoco_on_the_leaning_bar(cell: CellConfig, parts:
         mech = judge("parallel", bar.mesh, bar.mass_kg, pose, grasp, cell.tool)
         outcome = validate_grasp(bar, pose, [(block, block_pose)], statics, _physics_gripper(cell), grasp, 0.06).outcome
         assert mech.ok is holds and (outcome == "held") is holds, (holds, mech, outcome)
+
+
+def test_suction_on_an_unexplained_object_seals_only_on_its_measured_surface() -> None:
+    from normpos_grasp.grasp.quality import measured_seal
+
+    # measured points 1.5 mm apart (a D435 at about 0.9 m): a 60 x 40 mm flat top, and a 40 mm cylinder on its side
+    xs, ys = np.meshgrid(np.arange(-0.03, 0.03, 0.0015), np.arange(-0.02, 0.02, 0.0015))
+    flat = np.stack([xs.ravel() + 0.5, ys.ravel(), np.full(xs.size, 0.04)], axis=1)
+    down_at = lambda x, z: tcp_frame(DOWN, np.array([1.0, 0, 0]), np.array([x, 0.0, z]))  # noqa: E731
+    opts = QualityOptions(cup_diameter_m=0.03)
+    assert measured_seal(flat, down_at(0.5, 0.04), opts)
+    assert not measured_seal(flat, down_at(0.52, 0.04), opts)  # the lip hangs 3 mm over the measured edge
+    assert not measured_seal(flat[::40], down_at(0.5, 0.04), opts)  # too few measured points under the cup
+    r = 0.02
+    ang = np.clip(ys.ravel() / r, -1.0, 1.0)
+    side = np.stack([xs.ravel() + 0.5, ys.ravel(), r * np.sqrt(1.0 - ang**2)], axis=1)
+    assert not measured_seal(side, down_at(0.5, r), opts)  # 17 mm off its crest the side has dropped 9.5 mm
+    small = QualityOptions(cup_diameter_m=0.014, seal_margin_m=0.001)
+    assert measured_seal(side, down_at(0.5, r), small)  # a 16 mm footprint on the crest drops 1.7 mm

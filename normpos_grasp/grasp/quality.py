@@ -268,6 +268,29 @@ def suction_mechanics(
     return GraspMechanics(True, "", margin, predicted_success(margin), area, seal.max_normal_angle_rad, ratio)
 
 
+def measured_seal(points: FloatArray, world_from_tcp: FloatArray, options: QualityOptions | None = None) -> bool:
+    """Whether a suction cup at `world_from_tcp` (4, 4; approach along its z) seals on measured surface points
+    (N, 3, world, m) of an object no template explains: within the cup's footprint widened by `seal_margin_m`, every
+    one of 12 sectors of its outer ring holds at least two points (the lip lies on the measured object, not over its
+    edge, the bin or a hole), and the points under the footprint lie within `seal_flatness_m` of each other along
+    the approach (5th to 95th percentile: not a curved side or a step)."""
+    opts = options or QualityOptions()
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    g = np.asarray(world_from_tcp, dtype=np.float64)
+    local = (pts - g[:3, 3]) @ g[:3, :3]  # TCP frame: z along the approach
+    radius = opts.cup_diameter_m / 2.0 + opts.seal_margin_m
+    r = np.hypot(local[:, 0], local[:, 1])
+    under = (r <= radius) & (np.abs(local[:, 2]) <= 0.03)
+    if np.count_nonzero(under) < 24:
+        return False
+    ring = under & (r >= 0.6 * radius)
+    sector = (np.floor((np.arctan2(local[ring, 1], local[ring, 0]) + np.pi) / (2.0 * np.pi) * 12).astype(int)) % 12
+    if np.min(np.bincount(sector, minlength=12)) < 2:
+        return False
+    z = local[under, 2]
+    return bool(np.percentile(z, 95) - np.percentile(z, 5) <= opts.seal_flatness_m)
+
+
 def _posed_mesh(mesh: Any, world_from_object: FloatArray, trimesh: Any) -> Any:
     verts = np.asarray(mesh.vertices, dtype=np.float64) @ world_from_object[:3, :3].T + world_from_object[:3, 3]
     return trimesh.Trimesh(vertices=verts, faces=np.asarray(mesh.faces), process=False)

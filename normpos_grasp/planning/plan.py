@@ -141,7 +141,16 @@ def build_world(
             name = f"object/unmatched_{np_.instance_id}"
             world.add_mesh(name, template.mesh, pose, "object")
             targets.append(
-                Target(name, pose, template.mesh, float(pose[2, 3]), template.mass_kg, np_.instance_id, template.name)
+                Target(
+                    name,
+                    pose,
+                    template.mesh,
+                    float(pose[2, 3]),
+                    template.mass_kg,
+                    np_.instance_id,
+                    template.name,
+                    measured_points=pts,
+                )
             )
             templates.append(template)
             continue

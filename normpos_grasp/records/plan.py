@@ -21,7 +21,9 @@ PLAN_FORMAT = "normpos-grasp/plan@1"
 @dataclass(frozen=True, eq=False)
 class Target:
     """An object to pick: `name` (world element name), its mesh's lowest point below... `world_from_object`,
-    `template` mesh (for the held object), `height_m` (world z of its centre), mass_kg."""
+    `template` mesh (for the held object), `height_m` (world z of its centre), mass_kg; measured_points: for an
+    object no template explains (its mesh a box around them), its measured surface (N, 3) world, m: what a grasp
+    must hold on."""
 
     name: str
     world_from_object: FloatArray
@@ -30,6 +32,7 @@ class Target:
     mass_kg: float = 0.1
     instance_id: int = 0
     template: str = ""
+    measured_points: FloatArray | None = None
 
 
 @dataclass(frozen=True, eq=False)
