@@ -51,11 +51,13 @@ def test_watch_section_is_validated() -> None:
         "arm_margin_m": 0.1,
         "stop": "protective",
         "require_ack": True,
+        "approach_m": 0.2,
         "drift": {"max_translation_mm": 1.5},
     }
     cell = cell_from_dict(data, CELL_YAML.parent)
     assert cell.watch is not None and cell.watch.stop == "protective" and cell.watch.require_ack
     assert cell.watch.zones[0].name == "bin" and cell.watch.drift_max_translation_mm == 1.5
+    assert cell.watch.approach_m == 0.2
     bad = [
         ({"zones": [], "arm_margin_m": 0.0}, "watch: nothing to watch"),
         ({"zones": [{"min": [0, 0, 0], "max": [1, 1, -1]}]}, r"watch.zones\[0\]: max"),
@@ -63,6 +65,7 @@ def test_watch_section_is_validated() -> None:
         ({"zones": [{"min": [0, 0, 0], "max": [1, 1, 1]}], "margn_m": 0.1}, "did you mean 'margin_m'"),
         ({"zones": [{"min": [0, 0, 0], "max": [1, 1, 1]}], "require_ack": "yes"}, "watch.require_ack"),
         ({"zones": [{"min": [0, 0, 0], "max": [1, 1, 1]}], "min_blob_px": 2.5}, "whole number"),
+        ({"zones": [{"min": [0, 0, 0], "max": [1, 1, 1]}], "approach_m": -0.1}, "watch.approach_m"),
         ({"zones": [{"min": [0, 0, 0], "max": [1000, 1, 1]}]}, "millimetres"),
     ]
     for section, message in bad:

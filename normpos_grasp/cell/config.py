@@ -94,6 +94,7 @@ _WATCH_KEYS = (
     "require_ack",
     "k_sigma",
     "min_blob_px",
+    "approach_m",
     "silhouette_pad_m",
     "latency_s",
     "held_radius_m",
@@ -202,7 +203,9 @@ class WatchSpec:
     driver's deceleration) or 'protective' (a protective stop, unlocked on the pendant); require_ack: after a zone
     stop the loop waits for the operator's acknowledgement before it re-plans; k_sigma: a pixel is nearer than
     expected when it is nearer by more than k_sigma times the sensor's depth noise at that depth; min_blob_px:
-    smallest connected blob that counts, in watch pixels (after `downsample`); silhouette_pad_m: the arm's
+    smallest connected blob that counts, in watch pixels (after `downsample`); approach_m: width of the approach
+    band around each zone (a blob coming in within it stops the arm before enough of it is inside; 0: off; the
+    default is ISO 13855's 2.0 m/s over two frames at 30 fps), m; silhouette_pad_m: the arm's
     predicted silhouette grows by this (tracking error), m; latency_s: the silhouette covers every pose the arm
     took during this window before a frame is checked (the camera's and the stream's delay), s; held_radius_m:
     radius around the TCP ignored for a held part (0: from the plan's part), m; downsample: the depth stream is
@@ -218,6 +221,7 @@ class WatchSpec:
     require_ack: bool = False
     k_sigma: float = 5.0
     min_blob_px: int = 12
+    approach_m: float = 0.13
     silhouette_pad_m: float = 0.06
     latency_s: float = 0.1
     held_radius_m: float = 0.0
@@ -838,6 +842,7 @@ def _watch(v: Any, base_dir: str | Path) -> WatchSpec:
         require_ack=ack,
         k_sigma=_num(d.get("k_sigma", 5.0), "watch.k_sigma", 2.0, 50.0),
         min_blob_px=int(blob),
+        approach_m=_length(d.get("approach_m", 0.13), "watch.approach_m", 0.0, 1.0),
         silhouette_pad_m=_length(d.get("silhouette_pad_m", 0.06), "watch.silhouette_pad_m", 0.0, 0.5),
         latency_s=_num(d.get("latency_s", 0.1), "watch.latency_s", 0.0, 1.0, "s"),
         held_radius_m=_length(d.get("held_radius_m", 0.0), "watch.held_radius_m", 0.0, 1.0),

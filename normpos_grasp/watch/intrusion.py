@@ -33,7 +33,7 @@ from normpos_grasp.watch.person import PersonRule, blob_extent, classify
 from normpos_grasp.watch.zones import WatchZones
 
 # ISO 13855 approach speed of a hand or arm (2.0 m/s) over two frame intervals at 30 fps, m
-APPROACH_M = 0.13
+APPROACH_M: float = WatchSpec.approach_m  # 0.13 m, the cell YAML's watch.approach_m default
 # a blob in the approach band counts as coming in when it is nearer to its zone than in the previous frame by more
 # than this (depth noise and a blob's changing outline move its nearest point by a few millimetres), m
 APPROACH_EPS_M = 0.01
@@ -113,7 +113,7 @@ class IntrusionDetector:
 
     @classmethod
     def from_spec(cls, expected: ExpectedScene, spec: WatchSpec) -> IntrusionDetector:
-        return cls(expected, WatchZones.from_spec(spec), spec.min_blob_px)
+        return cls(expected, WatchZones.from_spec(spec), spec.min_blob_px, approach_m=spec.approach_m)
 
     def check(
         self, depth_m: FloatArray, q: FloatArray, held_radius_m: float = 0.0, keep_mask: bool = False
