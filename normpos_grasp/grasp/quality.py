@@ -304,12 +304,17 @@ def judge(
     world_from_tcp: FloatArray,
     tool: ToolModel,
     options: QualityOptions | None = None,
+    measured_points: FloatArray | None = None,
 ) -> GraspMechanics:
     """Mechanics verdict of one candidate: `parallel_mechanics` or `suction_mechanics` by scheme (with the tool's
-    own cup where it gives one)."""
+    own cup where it gives one). measured_points (N, 3), world, m: an object no template explains (its mesh a box
+    around them): a cup must also seal on them (`measured_seal`)."""
     if scheme == "suction":
         opts = options or QualityOptions()
         if tool.cup_diameter_m > 0.0:
             opts = replace(opts, cup_diameter_m=float(tool.cup_diameter_m))
-        return suction_mechanics(mesh, mass_kg, world_from_object, world_from_tcp, opts)
+        mech = suction_mechanics(mesh, mass_kg, world_from_object, world_from_tcp, opts)
+        if mech.ok and measured_points is not None and not measured_seal(measured_points, world_from_tcp, opts):
+            return GraspMechanics(False, "seal", -1.0, 0.0, mech.area_m2, mech.cone_angle_rad, np.inf)
+        return mech
     return parallel_mechanics(mesh, mass_kg, world_from_object, world_from_tcp, pad_footprint(tool), options)

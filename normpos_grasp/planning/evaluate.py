@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from normpos_grasp.geometry.transforms import invert_pose
-from normpos_grasp.grasp.quality import QualityOptions, judge, measured_seal
+from normpos_grasp.grasp.quality import QualityOptions, judge
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.plan import Evaluation, Target
@@ -277,16 +277,12 @@ def evaluate_candidates(
                 # mechanics on the fitted template (friction cones, pad area, weight and torque; the cup's seal and
                 # load): candidates that will not hold are rejected; the rest rank by the predicted success times
                 # the geometric quality
-                mech = judge(c.scheme, t.mesh, t.mass_kg, t.world_from_object, g[i], tool, opts.mechanics)
+                mech = judge(
+                    c.scheme, t.mesh, t.mass_kg, t.world_from_object, g[i], tool, opts.mechanics, t.measured_points
+                )
                 if not mech.ok:
                     reject(i, mech.reason, "grasp")
                     continue
-                if c.scheme == "suction" and t.measured_points is not None:
-                    # an object no template explains: its box promises no seal, the measured surface must
-                    cup = replace(opts.mechanics, cup_diameter_m=tool.cup_diameter_m or opts.mechanics.cup_diameter_m)
-                    if not measured_seal(t.measured_points, g[i], cup):
-                        reject(i, "seal", "grasp")
-                        continue
                 success[i] = mech.success * c.quality
                 exact = (
                     opts.w_height * heights[i]
