@@ -10,13 +10,14 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 pytest.importorskip("rtde_control")
 
-from normpos_grasp.errors import DriverFault, ProtectiveStop
+from normpos_grasp.errors import DriverFault, DriverTimeout, ProtectiveStop
 from normpos_grasp.execution import GripperIO, RtdeDriver, SafetyLimits, SupervisedRtdeDriver
 from normpos_grasp.kinematics.ur_params import ur_params
 from normpos_grasp.sim.rtde_reference import ReferenceControllerProcess
@@ -57,6 +58,28 @@ def test_stop_l_decelerates_along_the_line_and_safety_stops_take_50_ms() -> None
         arm.cycle(0.002)
         n += 1
     assert n * 0.002 <= SAFETY_STOP_TIME_S + 0.004
+
+
+def test_a_script_uploaded_with_the_stop_command_still_in_the_register_runs() -> None:
+    """ur_rtde's moveJ(path) stops the script (command 255), then clears the register (RTDE socket) and uploads the
+    next script (script socket) at once: the script must not read the stale stop, or moveJ(path) waits forever."""
+    from normpos_grasp.sim.rtde_reference.controller import BANNER, ReferenceController, Settings
+
+    ctl = ReferenceController(Settings(program_start_s=0.05))
+    ctl.running, ctl.in_int[0] = True, 255  # the old script saw the stop...
+    ctl._cycle()
+    assert not ctl.running
+    ctl._run_script(f'def rtde_control():\n  textmsg("{BANNER}")\n  movej([0,0,0,0,0,0], a=1.0, v=1.0)\nend\n')
+    ctl._cycle()  # ...and the upload arrived before the clear: one cycle with 255 still there
+    ctl.in_int[0] = 0  # the clear lands
+    t0 = time.monotonic()
+    while not ctl.running and time.monotonic() - t0 < 1.0:
+        ctl._cycle()
+        time.sleep(0.002)
+    assert ctl.running and len(ctl.script_path) == 1
+    for _ in range(20):
+        ctl._cycle()
+    assert ctl.running and ctl.out_int[0] == 1  # ready for the MOVE_PATH command
 
 
 # ---------------------------------------------------------------------- ur_rtde on the reference controller
@@ -156,3 +179,30 @@ def test_model_mismatch_refused_on_the_reference_controller(campaign: Campaign) 
     r = campaign.run("model_mismatch")
     assert r.exit_code == 2 and len(r.error_lines) == 1 and "UR5" in r.error_lines[0], _why(r)
     assert r.motion_cmds_in_run == 0
+
+
+def test_a_path_move_whose_script_never_starts_is_bounded_and_stops_the_program(tmp_path: Path) -> None:
+    """ur_rtde's moveJ(path) waits without a deadline for its re-uploaded script to run. A controller that never
+    starts it (here: scripts take forever to load) costs the in-process driver its script deadline, then a
+    DriverTimeout with the program stopped over the dashboard, and resume() carries on with a fresh client."""
+    with ReferenceControllerProcess(f"{_NET}.43", "ur5e", ready_timeout_s=60.0, log_path=tmp_path / "ref.log") as ref:
+        drv = RtdeDriver(ref.host, SafetyLimits.for_model("ur5e"), script_timeout_s=1.0)
+        drv.connect()
+        try:
+            q0 = drv.state().q
+            ref.emu("script_delay", "1e9")
+            t0 = time.monotonic()
+            with pytest.raises(DriverTimeout, match="moveJ path"):
+                drv.move_joints([q0 + 0.05, q0 + 0.1], 1.0, 2.0)
+            waited = time.monotonic() - t0
+            assert 1.0 <= waited < 1.0 + 1.5
+            since = ref.emu("since", str(t0 + 0.5))
+            assert "stop=programStop:dashboard stop" in since and "motion_after_t=0" in since, since
+            with pytest.raises(DriverFault):  # latched: nothing more is sent until resume()
+                drv.move_joints([q0 + 0.05], 1.0, 2.0)
+            ref.emu("script_delay", "0.1")
+            drv.resume()  # a fresh client; the stuck one is cut off and sends nothing
+            st = drv.move_joints([q0 + 0.05, q0 + 0.1], 1.0, 2.0)
+            assert np.max(np.abs(st.q - (q0 + 0.1))) < 1e-3
+        finally:
+            drv.disconnect()

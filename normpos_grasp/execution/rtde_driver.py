@@ -4,19 +4,29 @@ Moves are sent asynchronously (movej paths through `moveJ(path, asynchronous=Tru
 `moveL(path, asynchronous=True)`) and monitored here at `DriverOptions.poll_s`, so every move has a timeout and
 reacts to protective stops, e-stops and stale state within a poll period. Streaming uses `servoJ` with the
 controller-side RTDE watchdog armed; the control script is re-uploaded after a stream to disarm it.
+
+Every blocking call into the control and IO interfaces runs in a thread with a deadline (`_bounded`): ur_rtde
+1.6.5 waits without one for its control script to run in moveJ(path), moveL(path) and reuploadScript, and up to
+300 s for a command's answer. A call past its deadline stops the program over a fresh dashboard connection, cuts
+the stuck client off (`_set_aside_stuck`) and latches `DriverTimeout`; `resume()` connects a fresh client. servoJ
+is not bounded here: it only waits for the script to be ready, and while it waits no command reaches the
+controller, whose RTDE watchdog (armed for every stream) then stops the program.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import socket
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from normpos_grasp.errors import ConnectionLost, ControllerMismatch, DriverFault, MissingDependency
+from normpos_grasp.errors import ConnectionLost, ControllerMismatch, DriverFault, DriverTimeout, MissingDependency
 from normpos_grasp.geometry.transforms import pose_from_ur, pose_to_ur
 from normpos_grasp.typing import FloatArray
 
@@ -27,6 +37,7 @@ log = logging.getLogger(__name__)
 
 DASHBOARD_PORT = 29999
 _BUSY_GRACE_S = 0.3  # s: a just-started async move counts as busy until the joints move
+_T = TypeVar("_T")
 
 
 def _import_rtde() -> tuple[Any, Any, Any]:
@@ -73,6 +84,29 @@ def dashboard_query(host: str, lines: tuple[str, ...], timeout_s: float = 2.0) -
         raise ConnectionLost(f"dashboard server of {host} did not answer ({exc}); is the controller on?") from exc
 
 
+def dashboard_stop(host: str, timeout_s: float = 1.0) -> str | None:
+    """Stop the program over a fresh dashboard connection (independent of RTDE). None when the controller answered,
+    else a note saying the arm may still be moving."""
+    try:
+        with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            f = sock.makefile("rwb", buffering=0)
+            f.readline()
+            f.write(b"stop\n")
+            log.info("dashboard stop -> %s", f.readline().decode(errors="replace").strip())
+            return None
+    except OSError as exc:
+        return f"the dashboard is unreachable too ({exc}): the arm may still be moving"
+
+
+def _disconnect_all(clients: list[Any]) -> None:
+    for client in clients:
+        try:
+            client.disconnect()
+        except RuntimeError as exc:
+            log.warning("disconnecting a client set aside: %s", exc)
+
+
 def read_controller_identity(host: str, timeout_s: float = 2.0) -> ControllerIdentity:
     model, serial, software = dashboard_query(
         host, ("get robot model", "get serial number", "PolyscopeVersion"), timeout_s
@@ -110,6 +144,9 @@ class RtdeDriver(GuardedDriver):
     limits: SafetyLimits checked before sending. gripper: digital-output wiring. options: timeouts.
     servo_lookahead_s, servo_gain: servoJ parameters for streaming. verify_controller: before connecting, read the
     robot model (and `expected_serial` where given) from the dashboard and refuse a mismatch (ControllerMismatch).
+    call_timeout_s: the deadline of a control call that hands a command over (async move, stop, I/O), s.
+    script_timeout_s: the deadline of a call that (re)starts the control script (path moves, the re-arm after a
+    stream), s; 5 s is ur_rtde's own limit for its script to start (RTDEControlInterface::waitForProgramRunning).
 
     The ur_rtde client runs in this process: its aborts end the process. `SupervisedRtdeDriver` runs it in a child.
     """
@@ -124,8 +161,12 @@ class RtdeDriver(GuardedDriver):
         servo_gain: float = 300.0,
         verify_controller: bool = True,
         expected_serial: str | None = None,
+        call_timeout_s: float = 2.0,
+        script_timeout_s: float = 5.0,
     ) -> None:
         super().__init__(limits, gripper, options)
+        self.call_timeout_s = call_timeout_s
+        self.script_timeout_s = script_timeout_s
         self.host = host
         self.verify_controller = verify_controller
         self.expected_serial = expected_serial
@@ -143,6 +184,60 @@ class RtdeDriver(GuardedDriver):
         self._streaming = False
         self._link_lost = False
         self._abandoned: list[Any] = []  # control interfaces left after a link loss (see _backend_link_lost)
+        self._call_lock = threading.Lock()  # one control call at a time, taken in the calling thread of _bounded
+        self._stuck_calls: list[str] = []  # bounded calls that never returned (their clients were cut off)
+
+    # ------------------------------------------------------------------ bounded calls
+    def _bounded(self, what: str, timeout_s: float, call: Callable[..., _T], *args: Any) -> _T:
+        """`call(*args)` (a ur_rtde method) in a thread of its own, waited for at most `timeout_s` s.
+
+        Calls run one at a time (a stop sent while an interrupted move call is still handing its command over goes
+        after it). Past the deadline: `_set_aside_stuck` (the program is stopped over the dashboard) and a latched
+        DriverTimeout."""
+        result: list[tuple[bool, Any]] = []
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                with self._call_lock:
+                    result.append((True, call(*args)))
+            except BaseException as exc:  # handed to the caller below
+                result.append((False, exc))
+            finally:
+                done.set()
+
+        threading.Thread(target=run, name=f"ur_rtde {what}", daemon=True).start()
+        if not done.wait(timeout_s):
+            note = self._set_aside_stuck(what)
+            raise self._latch(
+                DriverTimeout(
+                    f"ur_rtde's {what} did not return within {timeout_s:.1f} s; the program was stopped over the "
+                    f"dashboard{'' if note is None else ' (' + note + ')'}; resume() connects a fresh client"
+                )
+            )
+        ok, value = result[0]
+        if not ok:
+            raise value
+        return value
+
+    def _set_aside_stuck(self, what: str) -> str | None:
+        """A control call did not return: stop the program over the dashboard, then cut the client off.
+
+        The stuck call may still be waiting inside ur_rtde (for its script to run, for an answer). Disconnecting the
+        client ends its receive thread (so it cannot reconnect on its own) and turns its sends into no-ops (ur_rtde
+        writes only while connected), so whatever that call would send next never leaves. The client object is kept
+        alive for good: the waiting thread still reads its state. `resume()` connects a fresh client."""
+        self._stuck_calls.append(what)
+        note = dashboard_stop(self.host)
+        clients = [c for c in (self._c, self._io) if c is not None]
+        self._c = self._io = None
+        for client in clients:
+            ctypes.pythonapi.Py_IncRef(ctypes.py_object(client))  # never freed under the waiting thread
+        cut = threading.Thread(target=_disconnect_all, args=(clients,), name="ur_rtde set aside", daemon=True)
+        cut.start()
+        cut.join(self.call_timeout_s)
+        log.error("ur_rtde's %s did not return: program stopped over the dashboard, client cut off", what)
+        return note
 
     # ------------------------------------------------------------------ backend
     def _release_abandoned(self) -> None:
@@ -172,6 +267,7 @@ class RtdeDriver(GuardedDriver):
                     f"use): disconnect that client first. ur_rtde said: {text}"
                 ) from exc
             raise ConnectionLost(f"cannot connect to the UR controller at {self.host}: {text}") from exc
+        self._call_lock = threading.Lock()
         self._last_ts = -1.0
         deadline = time.monotonic() + self.options.connect_timeout_s
         while time.monotonic() < deadline:
@@ -214,15 +310,7 @@ class RtdeDriver(GuardedDriver):
     def _backend_link_lost(self) -> str | None:
         """Stop the program over a fresh dashboard connection (independent of RTDE); never re-send motion."""
         self._link_lost = True
-        note = None
-        try:
-            with socket.create_connection((self.host, DASHBOARD_PORT), timeout=1.0) as sock:
-                f = sock.makefile("rwb", buffering=0)
-                f.readline()
-                f.write(b"stop\n")
-                log.info("link lost: dashboard stop -> %s", f.readline().decode(errors="replace").strip())
-        except OSError as exc:
-            note = f"the dashboard is unreachable too ({exc}): the arm may still be moving"
+        note = dashboard_stop(self.host)
         # ur_rtde 1.6.5's control interface reconnects on its own after a dropped link, re-uploading its script in a
         # loop, and calling into it right after a hard drop (disconnect() included) can crash the process. Set it
         # aside so this fault reaches the caller first; resume() or disconnect() ends it (_release_abandoned). The
@@ -271,19 +359,23 @@ class RtdeDriver(GuardedDriver):
         self._move_started, self._seen_running, self._still_since = time.monotonic(), False, -1.0
         self._still_window = 0.02 if len(waypoints) == 1 else 0.15
         if len(waypoints) == 1:
-            self._sent(self._c.moveJ(waypoints[0].tolist(), speed, accel, True), "moveJ")
+            self._sent(
+                self._bounded("moveJ", self.call_timeout_s, self._c.moveJ, waypoints[0].tolist(), speed, accel, True),
+                "moveJ",
+            )
         else:
             path = [list(map(float, w)) + [speed, accel, 0.0] for w in waypoints]
-            self._sent(self._c.moveJ(path, True), "moveJ path")
+            self._sent(self._bounded("moveJ path", self.script_timeout_s, self._c.moveJ, path, True), "moveJ path")
 
     def _backend_move_linear(self, poses: FloatArray, speed: float, accel: float) -> None:
         self._move_started, self._seen_running, self._still_since = time.monotonic(), False, -1.0
         self._still_window = 0.02 if len(poses) == 1 else 0.15
         if len(poses) == 1:
-            self._sent(self._c.moveL(pose_to_ur(poses[0]).tolist(), speed, accel, True), "moveL")
+            pose = pose_to_ur(poses[0]).tolist()
+            self._sent(self._bounded("moveL", self.call_timeout_s, self._c.moveL, pose, speed, accel, True), "moveL")
         else:
             path = [pose_to_ur(p).tolist() + [speed, accel, 0.0] for p in poses]
-            self._sent(self._c.moveL(path, True), "moveL path")
+            self._sent(self._bounded("moveL path", self.script_timeout_s, self._c.moveL, path, True), "moveL path")
 
     def _backend_busy(self) -> bool:
         # Judged from the receive interface only (joint speeds): calls into the control interface block, holding
@@ -302,7 +394,10 @@ class RtdeDriver(GuardedDriver):
         return now - self._still_since < self._still_window  # a path stops for an instant at each waypoint
 
     def _backend_servo_begin(self) -> None:
-        self._sent(self._c.setWatchdog(1.0 / self.options.watchdog_s), "setWatchdog")
+        self._sent(
+            self._bounded("setWatchdog", self.call_timeout_s, self._c.setWatchdog, 1.0 / self.options.watchdog_s),
+            "setWatchdog",
+        )
         self._streaming = True
 
     def _backend_servo(self, q: FloatArray, period_s: float) -> None:
@@ -314,12 +409,12 @@ class RtdeDriver(GuardedDriver):
         self._streaming = False
         if self._fault is not None or self._c is None:
             return
-        self._c.servoStop(self.options.stop_decel)
+        self._bounded("servoStop", self.call_timeout_s, self._c.servoStop, self.options.stop_decel)
         self._rearm_program()
 
     def _rearm_program(self) -> None:
         """Re-upload the control script (disarms the stream watchdog) and wait until it runs."""
-        self._c.reuploadScript()
+        self._bounded("reuploadScript", self.script_timeout_s, self._c.reuploadScript)
         deadline = time.monotonic() + self.options.connect_timeout_s
         while not (self._c.isProgramRunning() and self._backend_state().program_running):
             if time.monotonic() > deadline:
@@ -330,19 +425,23 @@ class RtdeDriver(GuardedDriver):
         if self._c is None or self._link_lost:
             return
         if self._streaming:
-            self._c.servoStop(decel)
-        self._c.stopJ(decel, False)
+            self._bounded("servoStop", self.call_timeout_s, self._c.servoStop, decel)
+        # synchronous: returns when the arm rests (3.5 rad at most to shed)
+        self._bounded("stopJ", self.call_timeout_s + 3.5 / max(decel, 0.5), self._c.stopJ, decel, False)
 
     def _backend_protective_stop(self) -> None:
         if self._c is None or self._link_lost:
             return
         # the protective stop ends the control script, so the call may report failure although the stop happened;
         # the receive interface's safety mode is the judge (GuardedDriver checks it)
-        if not self._c.triggerProtectiveStop():
+        if not self._bounded("triggerProtectiveStop", self.call_timeout_s, self._c.triggerProtectiveStop):
             log.info("triggerProtectiveStop() returned false (the control script ended with the stop)")
 
     def _backend_set_output(self, index: int, level: bool, tool: bool) -> None:
-        ok = self._io.setToolDigitalOut(index, level) if tool else self._io.setStandardDigitalOut(index, level)
+        if self._io is None:
+            raise ConnectionLost("not connected")
+        setter = self._io.setToolDigitalOut if tool else self._io.setStandardDigitalOut
+        ok = self._bounded("set digital output", self.call_timeout_s, setter, index, level)
         if not ok:
             raise self._latch(DriverFault(f"setting digital output {index} failed"))
         deadline = time.monotonic() + 1.0

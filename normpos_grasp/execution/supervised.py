@@ -31,7 +31,7 @@ from normpos_grasp.interrupts import uninterrupted
 from normpos_grasp.typing import FloatArray
 
 from .driver import ArmState, DriverOptions, GripperIO, GuardedDriver
-from .rtde_driver import DASHBOARD_PORT, check_controller
+from .rtde_driver import DASHBOARD_PORT, check_controller, dashboard_stop
 from .safety import SafetyLimits
 
 log = logging.getLogger(__name__)
@@ -67,21 +67,6 @@ def _rebuild(type_name: str, message: str) -> Exception:
     if type_name in ("RuntimeError", "OSError", "BrokenPipeError", "ConnectionResetError"):
         return ConnectionLost(f"ur_rtde: {message}")
     return DriverFault(f"the ur_rtde client failed: {type_name}: {message}")
-
-
-def dashboard_stop(host: str, timeout_s: float = 1.0) -> str | None:
-    """Stop the program over a fresh dashboard connection (independent of RTDE). None when the controller answered,
-    else a note saying the arm may still be moving."""
-    try:
-        with socket.create_connection((host, DASHBOARD_PORT), timeout=timeout_s) as sock:
-            sock.settimeout(timeout_s)
-            f = sock.makefile("rwb", buffering=0)
-            f.readline()
-            f.write(b"stop\n")
-            log.info("dashboard stop -> %s", f.readline().decode(errors="replace").strip())
-            return None
-    except OSError as exc:
-        return f"the dashboard is unreachable too ({exc}): the arm may still be moving"
 
 
 class SupervisedRtdeDriver(GuardedDriver):

@@ -13,7 +13,7 @@ the asynchronous move status in `output_int_register_<base + 2>` (bit 15 running
 counter of changes, 24-30 the move's id). Real-time commands (servoJ) are applied every cycle.
 
 Test verbs on the dashboard (`emu ...`, the interface the fault campaign speaks): protective_stop, estop,
-release_estop, drop, stall S, unlock_delay S, set_input BIT 0|1, state, since T.
+release_estop, drop, stall S, unlock_delay S, script_delay S, set_input BIT 0|1, state, since T.
 """
 
 from __future__ import annotations
@@ -65,6 +65,7 @@ class Settings:
     unlock_delay_s: float = 5.0
     q_start: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
     rt_priority: int = 0
+    program_start_s: float = 0.1
 
 
 class _Client:
@@ -101,6 +102,8 @@ class ReferenceController:
         self.stopped_at = -1e9
         self.running = False  # the control script
         self.script_path: list[tuple[str, np.ndarray, float, float]] = []
+        # an uploaded script waiting to start: (time.monotonic() when it starts, its path entries)
+        self.pending: tuple[float, list[tuple[str, np.ndarray, float, float]]] | None = None
         self.base = 0
         self.in_int, self.in_dbl = [0] * 48, [0.0] * 48
         self.out_int, self.out_dbl = [0] * 48, [0.0] * 48
@@ -193,7 +196,7 @@ class ReferenceController:
     def halt_program(self, why: str) -> None:
         with self.lock:
             self._stop_event(f"programStop:{why}")
-            self.running = False
+            self.running, self.pending = False, None
             self.sync_wait = False
             if self.arm.moving:
                 self.arm.safety_stop()
@@ -204,7 +207,7 @@ class ReferenceController:
             self._stop_event("protectiveStop")
             self.safety_mode, self.safety_bits = 3, self.safety_bits | (1 << 2)
             self.stopped_at = time.monotonic()
-            self.running = False
+            self.running, self.pending = False, None
             self.sync_wait = False
             self.arm.safety_stop()
             log.warning("protective stop: %s", why)
@@ -213,7 +216,7 @@ class ReferenceController:
         with self.lock:
             self._stop_event("emergencyStop")
             self.safety_mode, self.safety_bits = 7, self.safety_bits | (1 << 7)
-            self.running = False
+            self.running, self.pending = False, None
             self.sync_wait = False
             self.arm.safety_stop()
 
@@ -243,6 +246,8 @@ class ReferenceController:
     def _cycle(self) -> None:
         with self.lock:
             now = time.monotonic()
+            if self.pending is not None and now >= self.pending[0]:
+                self._start_script(self.pending[1])
             if self.running and self.watchdog_s > 0 and now - self.watchdog_t > self.watchdog_s:
                 self.halt_program("watchdog")
             if self.running:
@@ -558,9 +563,18 @@ class ReferenceController:
                 return
             if self.running:
                 self.halt_program("replaced by a new script")
-            self.script_path = path
-            self.running, self.acting, self.sync_wait, self.watchdog_s = True, False, False, 0.0
-            self.out_int[self.base] = 1
+            self.pending = (time.monotonic() + self.s.program_start_s, path)
+        log.info("control script received (%d path entries); it starts in %.2f s", len(path), self.s.program_start_s)
+
+    def _start_script(self, path: list[tuple[str, np.ndarray, float, float]]) -> None:
+        """Start the pending script (in the cycle, under the lock), unless the robot stopped meanwhile."""
+        self.pending = None
+        if self.safety_mode != 1 or self.robot_mode != 7:
+            log.error("script not started: the robot stopped while it loaded (safety %d)", self.safety_mode)
+            return
+        self.script_path = path
+        self.running, self.acting, self.sync_wait, self.watchdog_s = True, False, False, 0.0
+        self.out_int[self.base] = 1
         log.info("control script running (%d path entries)", len(path))
 
     # ------------------------------------------------------------------ dashboard
@@ -649,6 +663,8 @@ class ReferenceController:
                     c.streaming = False
                     with contextlib.suppress(OSError):
                         c.sock.shutdown(socket.SHUT_RDWR)
+            elif verb == "script_delay":  # uploaded scripts start this late (a huge value: they never start)
+                self.s.program_start_s = float(args[1])
             elif verb == "stall":
                 self.stall_until = time.monotonic() + float(args[1])
             elif verb == "unlock_delay":

@@ -83,6 +83,9 @@ class EmulatorOptions:
     use on a loaded machine to keep the 2 ms period, if the process may). serial: the dashboard's
     `get serial number` answer. robotiq_model: the gripper behind the Robotiq URCap socket ('2F-85', '2F-140'; ''
     serves no such socket, as a controller without the URCap). robotiq_port: its TCP port (63352 on a controller).
+    program_start_s: an uploaded script starts this long after it arrived (a controller loads it first; ur_rtde
+    clears its stop command on the RTDE socket as it uploads the next script, and a script started at once could
+    read the stale stop and end).
     """
 
     model: str = "ur5e"
@@ -95,6 +98,7 @@ class EmulatorOptions:
     serial: str = "20265500001"
     robotiq_model: str = "2F-85"
     robotiq_port: int = 63352
+    program_start_s: float = 0.1
 
 
 @dataclass
@@ -128,6 +132,7 @@ class EmulatedController:
         self.safety_mode = SAFETY_NORMAL
         self.safety_bits = 0
         self.program: Program | None = None
+        self.pending: tuple[float, Program] | None = None  # an uploaded script and when it starts (time.monotonic())
         self.in_int = [0] * 48
         self.in_double = [0.0] * 48
         self.out_int = [0] * 48
@@ -262,11 +267,25 @@ class EmulatedController:
                 log.error(msg)
                 self.events.append(msg)
                 return
-            self.program = Program("rtde_control", banner, path, offset)
-            self.watchdog_period = 0.0
-            self.out_int[offset + 0] = 1  # signal_ready()
-            self.events.append(f"control script started (banner {banner}, {len(path)} path entries)")
-        log.info("ur_rtde control script started (banner %s, %d path entries)", banner, len(path))
+            if self.program is not None:
+                self.stop_program("replaced by an uploaded script")
+            self.pending = (
+                time.monotonic() + self.options.program_start_s,
+                Program("rtde_control", banner, path, offset),
+            )
+        log.info("ur_rtde control script received (banner %s, %d path entries)", banner, len(path))
+
+    def _start_pending(self) -> None:
+        """Start the uploaded script once it has loaded (in the control cycle, under the lock)."""
+        assert self.pending is not None
+        prog, self.pending = self.pending[1], None
+        if self.safety_mode != SAFETY_NORMAL or self.robot_mode != ROBOT_MODE_RUNNING:
+            self.events.append("script not started: the robot stopped while it loaded")
+            return
+        self.program = prog
+        self.watchdog_period = 0.0
+        self.out_int[prog.reg_offset + 0] = 1  # signal_ready()
+        self.events.append(f"control script started (banner {prog.banner}, {len(prog.path)} path entries)")
 
     # ------------------------------------------------------------------ faults and dashboard actions
     def _stop_arrived(self, name: str) -> None:
@@ -294,7 +313,7 @@ class EmulatedController:
             if self.program is not None:
                 log.info("program stopped: %s", reason)
                 self.events.append(f"program stopped: {reason}")
-            self.program = None
+            self.program, self.pending = None, None
             if self.arm.moving:
                 self.arm.stop(PROTECTIVE_STOP_DECEL)
 
@@ -305,7 +324,7 @@ class EmulatedController:
             self.protective_stop_time = time.monotonic()
             self._stop_arrived("protectiveStop")
             self.arm.stop(PROTECTIVE_STOP_DECEL)
-            self.program = None
+            self.program, self.pending = None, None
             self.events.append(f"protective stop: {reason}")
             log.warning("protective stop: %s", reason)
 
@@ -315,7 +334,7 @@ class EmulatedController:
             self.safety_bits |= 1 << SAFETY_BIT_EMERGENCY
             self._stop_arrived("emergencyStop")
             self.arm.stop(PROTECTIVE_STOP_DECEL * 2)
-            self.program = None
+            self.program, self.pending = None, None
             self.events.append("emergency stop")
             log.warning("emergency stop")
 
@@ -348,6 +367,8 @@ class EmulatedController:
         """One control period: timestamp, watchdog, the control script's loop, one arm step."""
         with self.lock:
             self.timestamp = time.monotonic() - self.t0
+            if self.pending is not None and time.monotonic() >= self.pending[0]:
+                self._start_pending()
             prog = self.program
             if (
                 prog is not None
