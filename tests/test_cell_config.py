@@ -199,7 +199,9 @@ def test_check_camera_against_the_cell() -> None:
 
 
 def test_example_cells_are_valid() -> None:
-    for name in ("ur5e_bin_parallel.yaml", "ur10e_conveyor_suction.yaml"):
+    names = sorted(p.name for p in EXAMPLES.glob("*.yaml"))  # every example cell, new ones included
+    assert {"ur5e_bin_parallel.yaml", "ur10e_conveyor_suction.yaml", "ur5e_bin_suction.yaml"} <= set(names)
+    for name in names:
         cell = load_cell(EXAMPLES / name)
         assert cell.motion.joint_acceleration.max() <= 40.0
 
