@@ -203,6 +203,12 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
                 p.kill()
                 p.join(STOP_GRACE_S)
     pool.shutdown(wait=False, cancel_futures=True)
+    # Wait for the pool's manager thread to finish closing its wake-up pipe: left running, it races the interpreter's
+    # exit hook (concurrent.futures.process._python_exit writes to that pipe) into an OSError traceback on stderr
+    # after the one-line message (CPython 3.11).
+    manager = getattr(pool, "_executor_manager_thread", None)  # no public API exposes it
+    if manager is not None:
+        manager.join(STOP_GRACE_S)
 
 
 def _run_ray(tasks: list[tuple[SimulationConfig, int]], address: str, finish: SceneFn) -> None:
