@@ -20,7 +20,10 @@ Suction: the cup footprint must seal on the FITTED surface (`sim.physics_suction
 its fitted pose: every ray under the cup hits, height spread within the lip's compliance, normals facing the cup),
 the vacuum force must carry the weight times `load_factor`, and the payload torque about the cup's rim (weight
 times the centre of mass's offset from the cup axis) must stay under the cup's peel limit F_vac r / 4 (a disc
-pressed with a linear pressure profile opens on one side at that moment).
+pressed with a linear pressure profile opens on one side at that moment). An object no template explains must also
+seal on its measured points (`measured_seal`: a plane fitted to them, not their raw spread, judged), and
+`suction_friendliness` is the rule of a suction-friendly part: within the cup's payload, with a patch where the cup
+seals and holds.
 
 `GraspMechanics.margin` (1 - the limit-surface ratio, cut by the cone and area margins) is mapped to a predicted
 success probability by the calibration table `CALIBRATION` (margin bin -> success observed in MuJoCo, measured by
@@ -268,12 +271,134 @@ def suction_mechanics(
     return GraspMechanics(True, "", margin, predicted_success(margin), area, seal.max_normal_angle_rad, ratio)
 
 
+def cup_payload_kg(options: QualityOptions | None = None) -> float:
+    """The heaviest part the cup carries with the patch facing up: the vacuum force over g times `load_factor`, kg."""
+    from normpos_grasp.sim.physics_suction import vacuum_force_n
+
+    opts = options or QualityOptions()
+    f_vac = vacuum_force_n(opts.cup_diameter_m, opts.vacuum_kpa, opts.vacuum_efficiency)
+    return float(f_vac / (GRAVITY_M_S2 * opts.load_factor))
+
+
+@dataclass(frozen=True, eq=False)
+class SuctionFriendliness:
+    """Whether a part is suction-friendly for a cup (`suction_friendliness`). friendly: within the cup's payload,
+    with at least one sealing, holding patch (and, where `min_share` > 0, such a patch facing up in resting poses
+    covering that share of the resting probability); reason: '' or why not ('payload': heavier than
+    `cup_payload_kg`; 'no_patch': no patch of the surface seals and holds; 'resting': patches exist, but the part
+    rests too often with none facing up); share: the resting probability with such a patch facing up; payload_kg:
+    what the cup carries; patches / normals (K, 3): object frame, the sampled surface points (and their outward
+    normals) where a cup approaching along the normal seals (the cup widened by `seal_margin_m`) and holds the
+    part's weight and payload torque there."""
+
+    friendly: bool
+    reason: str
+    share: float
+    payload_kg: float
+    patches: FloatArray
+    normals: FloatArray
+
+
+def suction_friendliness(
+    mesh: Any,
+    mass_kg: float,
+    options: QualityOptions | None = None,
+    min_share: float = 0.0,
+    up_tol_rad: float = 0.35,
+    patch_samples: int = 400,
+) -> SuctionFriendliness:
+    """The geometric rule of a suction-friendly part for the cup of `options` (pass the tool's own cup, as `judge`
+    does): (1) mass within `cup_payload_kg`; (2) at least one patch: of the flat facets' centres and
+    `patch_samples` surface samples, those where the cup (widened by `seal_margin_m`) approaching along the surface
+    normal seals on the template (`check_seal`: every ray hits, heights within `seal_flatness_m`, normals within
+    `seal_normal_rad`: a flat or gently curved patch at least the cup's size) and, with the patch facing up, carries
+    the weight times `load_factor` and its moment about the cup centre (`suction_load`, `suction_torque` as in
+    `suction_mechanics`); (3) only with `min_share` > 0: the part's resting poses on a flat floor
+    (`trimesh.poses.compute_stable_poses`, quasi-static probabilities from the centre of mass) in which a patch
+    normal lies within `up_tol_rad` of straight up cover at least `min_share` of the resting probability (`share`,
+    always computed: how often the part lands with a patch the cup reaches from above). Deterministic; cached per
+    mesh."""
+    opts = options or QualityOptions()
+    return _friendliness(mesh, float(mass_kg), opts, float(min_share), float(up_tol_rad), int(patch_samples))
+
+
+@lru_cache(maxsize=64)
+def _friendliness(
+    mesh: Any, mass_kg: float, opts: QualityOptions, min_share: float, up_tol_rad: float, patch_samples: int
+) -> SuctionFriendliness:
+    import trimesh
+
+    from normpos_grasp.sim.physics_suction import SealOptions, check_seal, vacuum_force_n
+
+    payload = cup_payload_kg(opts)
+    none = np.zeros((0, 3))
+    if mass_kg > payload:
+        return SuctionFriendliness(False, "payload", 0.0, payload, none, none)
+    pts, nrm, _ = _surface(mesh, int(opts.samples))
+    step = max(1, len(pts) // max(1, patch_samples))
+    centres, facet_normals = _facet_centres(mesh)  # a flat face's centre, where a cup of its size fits if anywhere
+    pts, nrm = np.concatenate([centres, pts[::step]]), np.concatenate([facet_normals, nrm[::step]])
+    seal_opts = SealOptions(flatness_m=opts.seal_flatness_m, max_normal_angle_rad=opts.seal_normal_rad)
+    f_vac = vacuum_force_n(opts.cup_diameter_m, opts.vacuum_kpa, opts.vacuum_efficiency)
+    weight = mass_kg * GRAVITY_M_S2 * opts.load_factor
+    r = opts.cup_diameter_m / 2.0
+    com = np.asarray(getattr(mesh, "center_mass", np.asarray(mesh.bounds).mean(axis=0)), dtype=np.float64)
+    good = np.zeros(len(pts), dtype=bool)
+    for k, (p, n) in enumerate(zip(pts, nrm, strict=True)):
+        if weight > f_vac:
+            break
+        # patch facing up, the cup straight down on it: the weight pulls along the cup axis, its moment about the
+        # cup centre is the weight times the centre of mass's distance from the axis
+        moment = weight * float(np.linalg.norm(np.cross(com - p, n)))
+        if moment >= f_vac * r / 4.0:
+            continue
+        seal = check_seal(mesh, _tcp_on(p, -n), opts.cup_diameter_m + 2.0 * opts.seal_margin_m, seal_opts)
+        good[k] = seal.sealed
+    patches, normals = pts[good], nrm[good]
+    if not len(patches):
+        return SuctionFriendliness(False, "no_patch", 0.0, payload, patches, normals)
+    transforms, probs = trimesh.poses.compute_stable_poses(mesh, center_mass=com)
+    probs = np.asarray(probs, dtype=np.float64)
+    up = np.asarray(transforms, dtype=np.float64)[:, 2, :3]  # world +z in the object frame, per resting pose
+    faces_up = (normals @ up.T >= np.cos(up_tol_rad)).any(axis=0)
+    share = float(probs[faces_up].sum() / max(probs.sum(), 1e-12))
+    ok = share >= min_share
+    return SuctionFriendliness(ok, "" if ok else "resting", share, payload, patches, normals)
+
+
+def _facet_centres(mesh: Any) -> tuple[FloatArray, FloatArray]:
+    """(centres (F, 3), outward normals (F, 3)) of the mesh's flat facets (coplanar adjacent faces), area-weighted."""
+    facets = list(getattr(mesh, "facets", []))
+    if not facets:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    tri = np.asarray(mesh.triangles, dtype=np.float64)
+    area = np.asarray(mesh.area_faces, dtype=np.float64)
+    centres = np.array([(tri[f].mean(axis=1) * area[f][:, None]).sum(axis=0) / area[f].sum() for f in facets])
+    return centres, np.asarray(mesh.facets_normal, dtype=np.float64).reshape(-1, 3)
+
+
+def _tcp_on(point: FloatArray, approach: FloatArray) -> FloatArray:
+    """(4, 4) TCP pose at `point` with z along `approach` (x any perpendicular: the cup is round)."""
+    z = np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    pose[:3, 3] = point
+    return pose
+
+
 def measured_seal(points: FloatArray, world_from_tcp: FloatArray, options: QualityOptions | None = None) -> bool:
     """Whether a suction cup at `world_from_tcp` (4, 4; approach along its z) seals on measured surface points
-    (N, 3, world, m) of an object no template explains: within the cup's footprint widened by `seal_margin_m`, every
-    one of 12 sectors of its outer ring holds at least two points (the lip lies on the measured object, not over its
-    edge, the bin or a hole), and the points under the footprint lie within `seal_flatness_m` of each other along
-    the approach (5th to 95th percentile: not a curved side or a step)."""
+    (N, 3, world, m) of an object no template explains, within the cup's footprint widened by `seal_margin_m`: a
+    plane fitted to the points under it by least squares rises by at most `seal_flatness_m` across the footprint
+    (not a tilted face), 95 % of the points lie within `seal_flatness_m` of it (not a curved side, a step or two
+    parts), and each of 12 sectors of the footprint's rim band (its outer 8 %, or one point spacing where the points
+    are sparser) holds a point within half the flatness of the plane: the lip lies on the object all round, not over
+    its edge, the bin or a hole. The fitted plane, not the raw points' spread, is judged: a D435's depth noise
+    at 0.9 m (1.0-2.0 mm RMS on flat faces) spreads the points of a flat top by 4-6 mm from the 5th to the 95th
+    percentile."""
     opts = options or QualityOptions()
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     g = np.asarray(world_from_tcp, dtype=np.float64)
@@ -283,12 +408,23 @@ def measured_seal(points: FloatArray, world_from_tcp: FloatArray, options: Quali
     under = (r <= radius) & (np.abs(local[:, 2]) <= 0.03)
     if np.count_nonzero(under) < 24:
         return False
-    ring = under & (r >= 0.6 * radius)
-    sector = (np.floor((np.arctan2(local[ring, 1], local[ring, 0]) + np.pi) / (2.0 * np.pi) * 12).astype(int)) % 12
-    if np.min(np.bincount(sector, minlength=12)) < 2:
+    u, v, z = local[under, 0] / radius, local[under, 1] / radius, local[under, 2]
+    basis = np.column_stack([np.ones_like(u), u, v])
+    coef = np.linalg.lstsq(basis, z, rcond=None)[0]
+    res = np.abs(z - basis @ coef)
+    # the plane's rise across the footprint (a tilted face), then what it leaves (a curved side, a step)
+    if 2.0 * float(np.hypot(coef[1], coef[2])) > opts.seal_flatness_m:
         return False
-    z = local[under, 2]
-    return bool(np.percentile(z, 95) - np.percentile(z, 5) <= opts.seal_flatness_m)
+    if np.percentile(res, 95) > opts.seal_flatness_m:
+        return False
+    # the lip on the surface all round: each of 12 sectors of the footprint's rim band (the outer 8 % of the radius,
+    # or one point spacing where the points are sparser: past a face that ends under the cup's own rim) holds a
+    # point on the plane (within half the flatness)
+    ru = np.hypot(u, v)
+    spacing = float(np.sqrt(np.pi / len(u)))  # in radii: the footprint's area over its points
+    on = (res <= 0.5 * opts.seal_flatness_m) & (ru >= 1.0 - max(0.08, spacing))
+    sector = (np.floor((np.arctan2(v[on], u[on]) + np.pi) / (2.0 * np.pi) * 12).astype(int)) % 12
+    return bool(np.min(np.bincount(sector, minlength=12)) >= 1)
 
 
 def _posed_mesh(mesh: Any, world_from_object: FloatArray, trimesh: Any) -> Any:
