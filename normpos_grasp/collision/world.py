@@ -202,6 +202,8 @@ class _ArmShapes:
     radii: FloatArray
     pair_mask: BoolArray  # (S, S): non-adjacent pairs on different joints
     low_links: IntArray
+    joints: IntArray  # (S,) the DH frame each shape rides on
+    local_centres: FloatArray  # (S, 3) each shape's centre in its DH frame, m
 
 
 @dataclass(frozen=True)
@@ -223,6 +225,7 @@ class _BroadPhase:
     everything: fcl.DynamicAABBTreeCollisionManager | None
     lo: FloatArray
     hi: FloatArray
+    index: dict[str, int]  # element name -> its row of lo / hi
 
 
 class CollisionWorld:
@@ -344,6 +347,7 @@ class CollisionWorld:
             _manager([e.obj for e in enabled]) if enabled else None,
             np.array([e.lo for e in enabled]).reshape(-1, 3),
             np.array([e.hi for e in enabled]).reshape(-1, 3),
+            {e.name: k for k, e in enumerate(enabled)},
         )
         self._phases[self._disabled] = phase
         return phase
@@ -412,6 +416,8 @@ class CollisionWorld:
             np.array([bounding_radius(s.kind, s.size) for s in arm.shapes]),
             mask,
             np.array([i for i, s in enumerate(arm.shapes) if s.joint < 3], dtype=np.int64),
+            np.array([s.joint for s in arm.shapes], dtype=np.int64),
+            np.stack([np.asarray(s.link_from_shape, dtype=np.float64)[:3, 3] for s in arm.shapes]),
         )
 
     def set_tool(self, tool: ToolModel, clearance_m: float = 0.01, noise_margin_m: float = 0.002) -> None:
@@ -558,7 +564,7 @@ class CollisionWorld:
         if self.tool is None:
             raise InputError("check_tool needs a tool: call set_tool first")
         pose = np.asarray(world_from_tcp, dtype=np.float64)
-        for obj in self._pose_tool(pose, opening_m, inflated, True, margin):
+        for obj in self._pose_tool(pose, opening_m, inflated, False, margin):
             what = self._query(obj, skip)
             if what:
                 return Hit("tool", what)
@@ -669,11 +675,24 @@ class CollisionWorld:
                 self._tool_posed_by_config = False
         return hit
 
-    def configs_clear(self, qs: ArrayLike, opening_m: float = 0.0) -> BoolArray:
+    def configs_clear(
+        self,
+        qs: ArrayLike,
+        opening_m: float = 0.0,
+        held_rows: BoolArray | None = None,
+        tcp_from_held: ArrayLike | None = None,
+        held_name: str = "",
+        held_radius: float = 0.0,
+    ) -> BoolArray:
         """(K,) bool for configurations qs (K, 6) rad: True where bounding spheres alone prove `check_config(q,
         opening_m)` finds nothing (no arm, tool or held-object sphere touches an enabled element's box, no
         self-collision pair's spheres touch). False means 'not proven': run `check_config`. One vectorised pass, so
-        dense edge checks pay fcl only near contacts."""
+        dense edge checks pay fcl only near contacts.
+
+        held_rows (K,) bool: those configurations are judged as inside `holding(held_name, mesh, tcp_from_held)`
+        (an object of bounding radius `held_radius` m about its origin at `tcp_from_held` (4, 4), the element
+        `held_name` left out), the others as the world stands, which must then hold nothing: an empty-handed
+        approach and a held lift in one pass."""
         if self.arm is None or self.tool is None or self._arm is None:
             raise InputError("configs_clear needs set_arm and set_tool first")
         q = np.asarray(qs, dtype=np.float64).reshape(-1, 6)
@@ -683,43 +702,58 @@ class CollisionWorld:
         phase = self._phase()
         exact = self._tools["exact"]
         frames = self.arm.frames(q)  # (K, 7, 4, 4)
-        joints = np.array([s.joint for s in self.arm.shapes])
-        local_c = np.stack([np.asarray(s.link_from_shape, dtype=np.float64)[:3, 3] for s in self.arm.shapes])
-        f = frames[:, joints]  # (K, S, 4, 4)
-        arm_c = np.einsum("ksij,sj->ksi", f[..., :3, :3], local_c) + f[..., :3, 3]
+        f = frames[:, self._arm.joints]  # (K, S, 4, 4)
+        arm_c = np.einsum("ksij,sj->ksi", f[..., :3, :3], self._arm.local_centres) + f[..., :3, 3]
         world_from_tcp = frames[:, 6] @ self.tool.flange_from_tcp
         local = exact.tcp_from_shape.copy()
         local[:, 0, 3] += self._tool_moves * (opening_m / 2.0 + self._tool_finger_half)
         tool_c = np.einsum("kij,sj->ksi", world_from_tcp[:, :3, :3], local[:, :3, 3]) + world_from_tcp[:, None, :3, 3]
         movers_c = [arm_c[:, 1:], tool_c]
         movers_r = [self._arm.radii[1:], exact.radii]
-        if self._held is not None:
+        held_radii: FloatArray | None = None  # (K,) per configuration, when some hold and some do not
+        if held_rows is not None:
+            if self._held is not None:
+                raise InputError("configs_clear with held_rows needs an empty-handed world")
+            rows = np.asarray(held_rows, dtype=bool).reshape(k)
+            held = world_from_tcp @ np.asarray(tcp_from_held, dtype=np.float64)
+            # rows without the object: a point at the first tool sphere's centre, which that sphere already covers
+            movers_c.append(np.where(rows[:, None], held[:, :3, 3], tool_c[:, 0])[:, None])
+            held_radii = np.where(rows, float(held_radius), 0.0)
+            movers_r.append(np.zeros(1))
+        elif self._held is not None:
             held = world_from_tcp @ self._held.tcp_from_object
             movers_c.append(held[:, None, :3, 3])
             movers_r.append(np.array([self._held.radius]))
         centres = np.concatenate(movers_c, axis=1)  # (K, M, 3)
-        radii = np.concatenate(movers_r)
+        radii = np.broadcast_to(np.concatenate(movers_r), (k, centres.shape[1])).copy()  # (K, M)
+        if held_radii is not None:
+            radii[:, -1] = held_radii
         clear = np.ones(k, dtype=bool)
         if len(phase.lo):
             # only elements whose AABB meets the box around all of a configuration's spheres (1 nm of slack) can
             # touch one of them: the sphere tests run on those (configuration, element) pairs
-            box_lo = (centres - radii[None, :, None]).min(axis=1) - 1e-9  # (K, 3)
-            box_hi = (centres + radii[None, :, None]).max(axis=1) + 1e-9
-            kk, ee = np.nonzero(
-                np.all(phase.lo[None] <= box_hi[:, None], axis=2) & np.all(phase.hi[None] >= box_lo[:, None], axis=2)
+            box_lo = (centres - radii[..., None]).min(axis=1) - 1e-9  # (K, 3)
+            box_hi = (centres + radii[..., None]).max(axis=1) + 1e-9
+            pairs = np.all(phase.lo[None] <= box_hi[:, None], axis=2) & np.all(
+                phase.hi[None] >= box_lo[:, None], axis=2
             )
+            if held_rows is not None and held_name in phase.index:
+                pairs[np.asarray(held_rows, dtype=bool).reshape(k), phase.index[held_name]] = False
+            kk, ee = np.nonzero(pairs)
             if len(kk):
                 c = centres[kk]  # (P, M, 3)
                 gap = np.maximum(phase.lo[ee][:, None] - c, 0.0) + np.maximum(c - phase.hi[ee][:, None], 0.0)
                 d2 = np.einsum("pmi,pmi->pm", gap, gap)
-                clear[kk[np.any(d2 <= (radii * radii)[None], axis=1)]] = False
+                clear[kk[np.any(d2 <= radii[kk] * radii[kk], axis=1)]] = False
         r = self._arm.radii
         d = np.linalg.norm(arm_c[:, :, None] - arm_c[:, None], axis=-1) - (r[:, None] + r[None])
         clear &= ~np.any((d <= 0) & self._arm.pair_mask[None], axis=(1, 2))
         low = self._arm.low_links
         extra_c = np.concatenate(movers_c[1:], axis=1)
-        extra_r = np.concatenate(movers_r[1:])
-        d = np.linalg.norm(arm_c[:, low][:, :, None] - extra_c[:, None], axis=-1) - (r[low][:, None] + extra_r[None])
+        extra_r = radii[:, len(r) - 1 :]  # (K, tool and held)
+        d = np.linalg.norm(arm_c[:, low][:, :, None] - extra_c[:, None], axis=-1) - (
+            r[low][None, :, None] + extra_r[:, None]
+        )
         clear &= ~np.any(d <= 0, axis=(1, 2))
         return clear
 

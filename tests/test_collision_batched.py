@@ -1,0 +1,71 @@
+"""CollisionWorld's one-pass sphere proof of an empty-handed approach and a held lift (`configs_clear(held_rows=...)`)
+agrees with the two scoped passes it replaces, and the tool check without its numpy pre-test finds the same hits."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from normpos_grasp.collision import CollisionWorld, tool_from_gripper
+from normpos_grasp.geometry import make_pose
+from normpos_grasp.kinematics import Gripper
+from normpos_grasp.planning import ArmModel
+
+DOWN = np.diag([1.0, -1.0, -1.0])
+
+
+def _world() -> tuple[CollisionWorld, ArmModel, trimesh.Trimesh]:
+    world = CollisionWorld()
+    arm = ArmModel.from_name("ur5e", make_pose(np.diag([-1.0, -1.0, 1.0]), [-0.5, 0.0, 0.0]))
+    world.add_box("table", make_pose(None, [0, 0, -0.025]), [1.2, 1.2, 0.05], "cell")
+    world.add_box("wall", make_pose(None, [0.25, 0, 0.1]), [0.02, 0.5, 0.2], "cell")
+    cube = trimesh.creation.box((0.05, 0.05, 0.05))
+    world.add_mesh("object/0", cube, make_pose(None, [0.0, 0.0, 0.025]), "object")
+    world.add_mesh("object/1", cube, make_pose(None, [0.15, 0.0, 0.025]), "object")
+    world.add_points("clutter/3", np.array([[-0.1, 0.1, 0.01], [-0.1, 0.1, 0.015]]), 0.01)
+    world.set_arm(arm)
+    world.set_tool(tool_from_gripper(Gripper.load("2f85")))
+    return world, arm, cube
+
+
+def test_held_rows_match_the_scoped_passes() -> None:
+    world, arm, cube = _world()
+    rng = np.random.default_rng(3)
+    flange_from_tcp = world.tool.flange_from_tcp  # type: ignore[union-attr]
+    n_clear = 0
+    for _ in range(40):
+        # five TCP poses over and into the part field: some proven clear, some not
+        xyz = rng.uniform([-0.15, -0.15, 0.03], [0.15, 0.15, 0.35], size=(5, 3))
+        poses = np.stack([make_pose(DOWN, p) for p in xyz])
+        q, ok = arm.ik(poses @ np.linalg.inv(flange_from_tcp))
+        branch = int(np.argmax(ok.all(axis=0)))
+        if not ok[:, branch].all():
+            continue
+        qs = q[:, branch]
+        tcp_from_object = np.linalg.inv(poses[2]) @ make_pose(None, [0.0, 0.0, 0.025])
+        radius = float(np.linalg.norm(cube.vertices, axis=1).max())
+        rows = np.array([False, False, False, True, True])
+        one = world.configs_clear(qs, 0.06, rows, tcp_from_object, "object/0", radius)
+        empty = world.configs_clear(qs[:3], 0.06)
+        with world.holding("object/0", cube, tcp_from_object):
+            held = world.configs_clear(qs[3:], 0.06)
+        assert one.tolist() == np.concatenate([empty, held]).tolist()
+        n_clear += int(one.sum())
+        # what the spheres prove clear, fcl finds clear
+        for p in np.flatnonzero(one[:3]):
+            assert world.check_config(qs[p], 0.06) is None
+    assert n_clear > 0
+
+
+def test_tool_check_finds_the_same_first_hit_on_every_shape() -> None:
+    world, _, _ = _world()
+    # the jaws straddle object/0 (free), close on it (object), sink into the table (cell), reach the wall (cell)
+    assert world.check_tool(make_pose(DOWN, [0.0, 0.0, 0.04]), 0.085) is None
+    hit = world.check_tool(make_pose(DOWN, [0.0, 0.0, 0.04]), 0.03)
+    assert hit is not None and hit.reason == "collision_object"
+    hit = world.check_tool(make_pose(DOWN, [0.0, 0.3, -0.005]), 0.085)
+    assert hit is not None and hit.reason == "collision_cell"
+    with world.without("object/0", "object/1"):
+        assert world.check_tool(make_pose(DOWN, [0.0, 0.0, 0.04]), 0.03) is None
+    # far from everything: no shape is near, nothing is hit
+    assert world.check_tool(make_pose(DOWN, [0.0, 0.0, 1.5]), 0.03) is None
