@@ -287,6 +287,43 @@ def test_signal_mid_move_stops_the_sim_arm_and_latches(sig: str) -> None:
         drv.shutdown()
 
 
+def test_an_interrupts_stop_is_sized_for_the_planned_speed_when_the_state_lags() -> None:
+    """The state last checked may be old (read while the arm still accelerated, up to the stall watchdog's age): the
+    stop after a Ctrl-C is sized for the larger of the measured and the planned joint speed, so the arm still rests
+    within halt_time_s. Here every state reads the joints at rest."""
+    import signal
+    import threading
+
+    from normpos_grasp.execution import stop_signals
+    from normpos_grasp.execution.driver import ArmState
+
+    decels: list[float] = []
+
+    class LaggingState(SimDriver):
+        def _backend_state(self) -> ArmState:
+            st = super()._backend_state()
+            st.qd[:] = 0.0  # a reading from before the arm sped up
+            return st
+
+        def _backend_stop(self, decel: float) -> None:
+            decels.append(decel)
+            super()._backend_stop(decel)
+
+    lim = SafetyLimits.for_model("ur5e")
+    drv = LaggingState(lim, q_home=HOME)
+    drv.connect()
+    try:
+        with stop_signals():
+            threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+            with pytest.raises(KeyboardInterrupt):
+                drv.move_joints([HOME + np.array([1.2, 0, 0, 0, 0, 0])], 1.5, 3.0)
+        assert decels and decels[0] == pytest.approx(drv.options.halt_decel_for(1.5))
+        assert decels[0] > drv.options.halt_decel  # the measured speed alone (0) would give the floor
+    finally:
+        drv.disconnect()
+        drv.shutdown()
+
+
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
 def test_a_signal_inside_an_uninterrupted_block_is_raised_after_it(sig: str) -> None:
     """The supervised driver reads and writes each pipe message inside `uninterrupted()`: a signal between a

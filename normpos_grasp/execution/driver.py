@@ -268,6 +268,10 @@ class GuardedDriver(abc.ABC):
         self._stop_request: tuple[str, bool, Any] | None = None
         self.stop_sent_at = -1.0  # time.monotonic() when the last requested stop was sent, s
         self._peak_qd = 0.0  # rad/s: the leading joint's speed in the last state checked (sizes an interrupt's stop)
+        # rad/s: the fastest the running motion call may drive a joint (its speed cap or its trajectory's peak; 0 at
+        # rest). An interrupt's stop is sized for the larger of the two: the state last checked may be up to the stall
+        # watchdog old, read while the arm was still accelerating.
+        self._planned_qd = 0.0
         # follow_trajectory(keep_streaming=True) left the stream open, holding these joints (6,) rad
         self._hold: FloatArray | None = None
         self._hold_sent_at = 0.0  # time.monotonic() of the last command the open stream got, s
@@ -357,7 +361,7 @@ class GuardedDriver(abc.ABC):
                 and float(np.max(np.abs(self._backend_state().qd))) > 1e-4
             ):
                 log.warning("disconnect while the arm moves: stopping it first")
-                self._backend_stop(self.options.halt_decel_for(self._peak_qd))
+                self._backend_stop(self.options.halt_decel_for(self._stop_speed()))
         except (OSError, RuntimeError, DriverFault) as exc:
             log.warning("stop before disconnect failed (%s); stopping the program another way", exc)
             self._halt_fallback()
@@ -373,6 +377,10 @@ class GuardedDriver(abc.ABC):
         except (OSError, RuntimeError, DriverFault) as exc:
             log.error("could not stop the arm by any channel: %s", exc)
 
+    def _stop_speed(self) -> float:
+        """rad/s an interrupt's stop is sized for: the measured peak or the running motion's planned one."""
+        return max(self._peak_qd, self._planned_qd)
+
     def _halt_on_exit(self, exc: BaseException, what: str) -> None:
         """A motion call is being left by `exc`. Faults the driver raised itself have already stopped the arm (or the
         controller has); anything else (KeyboardInterrupt, TerminationRequested, an unexpected error) stops the arm
@@ -386,7 +394,7 @@ class GuardedDriver(abc.ABC):
         try:
             if not self._backend_connected():
                 raise ConnectionLost("not connected")
-            decel = self.options.halt_decel_for(self._peak_qd)
+            decel = self.options.halt_decel_for(self._stop_speed())
             self._backend_stop(decel)
             log.info("%s left by %s: arm stopped (%.1f rad/s^2)", what, reason, decel)
         except (OSError, RuntimeError, DriverFault) as err:
@@ -503,12 +511,15 @@ class GuardedDriver(abc.ABC):
             timeout_s if timeout_s is not None else expected * self.options.move_factor + self.options.move_margin_s
         )
         self.commands_sent += 1
+        self._planned_qd = float(speed)
         try:
             self._backend_move_path(wps, speed, accel)
             return self._monitor(wps[-1], timeout, "move_joints")
         except BaseException as exc:
             self._halt_on_exit(exc, "move_joints")
             raise
+        finally:
+            self._planned_qd = 0.0
 
     def move_linear(self, base_from_tcp: ArrayLike, speed: float, accel: float) -> ArmState:
         self._require_ready()
@@ -529,12 +540,15 @@ class GuardedDriver(abc.ABC):
             prev = pose[:3, 3]
         timeout = (length / speed + speed / accel) * self.options.move_factor + self.options.move_margin_s
         self.commands_sent += 1
+        self._planned_qd = float(np.max(self.limits.max_joint_speed))  # a line's joint speeds: up to the caps
         try:
             self._backend_move_linear(poses, speed, accel)
             return self._monitor_linear(poses[-1], timeout)
         except BaseException as exc:
             self._halt_on_exit(exc, "move_linear")
             raise
+        finally:
+            self._planned_qd = 0.0
 
     def follow_trajectory(self, times: ArrayLike, q: ArrayLike, keep_streaming: bool = False) -> ArmState:
         """Stream a time-parameterised joint trajectory with servoj at `stream_period_s`, then settle on its end.
@@ -578,6 +592,8 @@ class GuardedDriver(abc.ABC):
             raise
         self.commands_sent += 1
         self._hold = None
+        if len(samples) > 1:
+            self._planned_qd = float(np.max(np.abs(np.diff(samples, axis=0)))) / period
         if not held:
             self._backend_servo_begin()
         t0 = time.monotonic()
@@ -613,6 +629,7 @@ class GuardedDriver(abc.ABC):
             self._halt_on_exit(exc, "follow_trajectory")
             raise
         finally:
+            self._planned_qd = 0.0  # settled on the end, or stopped
             if not (settled and keep_streaming):
                 self._backend_servo_end()
         if keep_streaming:
