@@ -494,7 +494,7 @@ class CollisionWorld:
         if len(phase.lo) == 0:
             return np.zeros(len(centres), dtype=bool)
         c = centres[:, None, :]
-        gap = np.maximum(phase.lo[None] - c, 0.0) + np.maximum(c - phase.hi[None], 0.0)
+        gap = np.minimum(np.maximum(c, phase.lo[None]), phase.hi[None]) - c  # to the box's nearest point
         d2 = np.einsum("kni,kni->kn", gap, gap)
         return np.any(d2 <= (radii * radii)[:, None], axis=1)
 
@@ -742,7 +742,7 @@ class CollisionWorld:
             kk, ee = np.nonzero(pairs)
             if len(kk):
                 c = centres[kk]  # (P, M, 3)
-                gap = np.maximum(phase.lo[ee][:, None] - c, 0.0) + np.maximum(c - phase.hi[ee][:, None], 0.0)
+                gap = np.minimum(np.maximum(c, phase.lo[ee][:, None]), phase.hi[ee][:, None]) - c
                 d2 = np.einsum("pmi,pmi->pm", gap, gap)
                 clear[kk[np.any(d2 <= radii[kk] * radii[kk], axis=1)]] = False
         r = self._arm.radii
