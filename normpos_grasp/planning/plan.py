@@ -681,7 +681,15 @@ def _build_path(
         if not free_empty(q):
             raise _PathRejected("collision on the way into the bin", "path_collision")
     backoff = opts.evaluation.contact_backoff_m + opts.cartesian_step_m
-    for q, p in zip(seg_pre[1:-1], tcp_pre[1:-1], strict=True):
+    # samples the bounding spheres prove clear in the whole world pass both tests below without fcl; those within
+    # the backoff of the grasp (the tool at the target) are always checked, so the last check stays at the grasp
+    far = np.linalg.norm(tcp_pre[1:-1] - tcp_pre[-1], axis=1) > backoff
+    pre_clear = np.zeros(len(far), dtype=bool)
+    if far.any():
+        pre_clear[far] = world.configs_clear(seg_pre[1:-1][far], opening)
+    for q, p, ok in zip(seg_pre[1:-1], tcp_pre[1:-1], pre_clear, strict=True):
+        if ok:
+            continue
         if np.linalg.norm(p - tcp_pre[-1]) <= backoff:
             # the tool touches the target by design at the end: everything else is still checked
             with world.without(target.name):
