@@ -11,7 +11,7 @@ from normpos_grasp.camera.model import Camera, RGBDFrame
 from normpos_grasp.camera.render import render
 from normpos_grasp.geometry.transforms import invert_pose
 from normpos_grasp.measure.measure import backproject_depth
-from normpos_grasp.perception.cad_detector import CadDetector, RegionOfInterest
+from normpos_grasp.perception.cad_detector import CadDetector, RegionOfInterest, _dilate
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.parts import box_symmetry
 from normpos_grasp.templates.prepared import prepare
@@ -59,7 +59,8 @@ def _judge(frame, roi, template, cfo):  # type: ignore[no-untyped-def]
     det._depth = depth
     in_roi = det._roi_mask(frame, pmap, roi)
     others = np.zeros(in_roi.shape, dtype=bool)
-    return det._contradiction(pmap, in_roi, others, prepare(template), cfo, 1.0)
+    near = _dilate(in_roi.reshape(depth.shape), det.options.off_roi_margin_px).reshape(-1)  # as the detector does
+    return det._contradiction(pmap, in_roi, others, prepare(template), cfo, 1.0, near)
 
 
 def test_a_small_template_on_a_larger_surface_is_contradicted(block_scene) -> None:  # type: ignore[no-untyped-def]

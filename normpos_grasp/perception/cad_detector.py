@@ -117,21 +117,23 @@ class CadOptions:
     max_sink_m: a hypothesis or fit reaching more than this (plus 2.5 x the noise) below the support plane is
         dropped (`CadDetector._sinks`; metres, 0 disables).
     max_verify: most hypotheses verified per round (the best-explaining first).
-    max_continuation / max_off_roi: when the greedy selection ends, every accepted pose is judged against the scene
-        and all the other accepted poses at once (`CadDetector._drop_contradicted`): a pose whose measured surface
-        goes on past its silhouette on several sides (`_contradiction`: ring pixels 3-8 px outside it, inside the
-        ROI, not explained by another accepted pose, whose 5 x 5 mean depth and normal lie on the pose's tangent
-        plane; the third largest share of 8 sectors round the outline) above max_continuation, or whose visible
-        surface is supported by depth outside the ROI (the floor, a wall) for more than max_off_roi of its samples,
-        is a template explaining part of a larger surface (a puck's top disc on a plate or a U channel's web, a
-        square plate on a strip plate) or lying on the bare floor, and is dropped; 0 disables either test. On the
-        held-out piles (bench_cad seeds 2, 5 and 7, no hints, and seed 2 with the model's hints; 93 accepted poses
-        with the tests off) the third-sector continuation of every right pose was 0, of 9 of the 29 wrong ones
-        0.026-0.25 (most of the others are another template's pose on a surface it covers without overhang, or a
-        wrong turn of the right template: no surface goes on). The mean share over the whole ring was tried first:
-        a right square plate touching a strip plate reached 0.059 there, wrong poses 0.014-0.21. Off-ROI support
-        above 0.6 (a plate posed on the bare floor: 0.89) is the gross case only: right thin plates on the floor,
-        whose outline the ROI's window mean erodes, reached 0.53, wrong plates on other parts 0.19-0.46.
+    max_continuation / max_off_roi / off_roi_margin_px: when the greedy selection ends, every accepted pose is judged
+        against the scene and all the other accepted poses at once (`CadDetector._drop_contradicted`): a pose whose
+        measured surface goes on past its silhouette on several sides (`_contradiction`: ring pixels 3-8 px outside
+        it, inside the ROI, not explained by another accepted pose, whose 5 x 5 mean depth and normal lie on the
+        pose's tangent plane; the third largest share of 8 sectors round the outline) above max_continuation, or
+        whose visible samples rest on depth more than off_roi_margin_px outside the ROI (the floor, a wall) for more
+        than max_off_roi of them, is a template explaining part of a larger surface (a puck's top disc on a plate or
+        a U channel's web, a square plate on a strip plate) or overhanging its part onto the floor, and is dropped;
+        0 disables either test. On the held-out piles (bench_cad seeds 2, 5 and 7, no hints, and seed 2 with the
+        model's hints; 93 accepted poses with the tests off) the third-sector continuation of every right pose was 0,
+        of 9 of the 29 wrong ones 0.026-0.25 (most of the others: another template's pose on a surface it covers
+        without overhang, or a wrong turn of the right template: no surface goes on). The mean share over the whole
+        ring was tried first: a right square plate touching a strip plate reached 0.059 there, wrong poses
+        0.014-0.21. Off-ROI support beyond 4 px: right poses at most 0.023 without hints, one right square plate
+        0.109 with the model's hints (3 mm off, over the floor); wrong plates 0.26-0.68 (4 of them), the other wrong
+        poses under 0.06. Without the margin right thin plates on the floor reached 0.53 (their outline on floor
+        pixels the ROI's window mean erodes).
     max_rounds: PPF rounds on the residual; a round that accepts nothing ends the detection.
     noise_per_m2: depth noise RMS per squared range, 1/m (D435: 0.0036).
     refine_turn: turn accepted poses of templates with a discrete rotation group (nut, square plate, hex standoff)
@@ -162,7 +164,8 @@ class CadOptions:
     max_see_through: float = 0.1
     max_rounds: int = 3
     max_continuation: float = 0.02
-    max_off_roi: float = 0.6
+    max_off_roi: float = 0.15
+    off_roi_margin_px: int = 4
     noise_per_m2: float = 0.0036
     refine_turn: bool = True
     refine_region: bool = True
@@ -596,13 +599,17 @@ class CadDetector:
         opts = self.options
         if not accepted or (opts.max_continuation <= 0 and opts.max_off_roi <= 0):
             return 0
-        owner = np.full(pmap.shape[0] * pmap.shape[1], -1, dtype=np.int64)
+        h, w = pmap.shape[:2]
+        # off-ROI support counts only beyond off_roi_margin_px of the ROI: a right plate's outline lies on floor
+        # pixels the ROI's window mean eroded, and a right pose a few millimetres off overhangs the ROI as much
+        near = _dilate(in_roi.reshape(h, w), opts.off_roi_margin_px).reshape(-1)
+        owner = np.full(h * w, -1, dtype=np.int64)
         for k, (hy, _) in enumerate(accepted):
             owner[hy.pixels] = k
         keep: list[tuple[_Hyp, TemplateFit]] = []
         for k, (hy, f) in enumerate(accepted):
             others = (owner >= 0) & (owner != k)
-            cont, off = self._contradiction(pmap, in_roi, others, hy.prep, hy.camera_from_object, f.scale)
+            cont, off = self._contradiction(pmap, in_roi, others, hy.prep, hy.camera_from_object, f.scale, near)
             if (opts.max_continuation > 0 and cont > opts.max_continuation) or (
                 opts.max_off_roi > 0 and off > opts.max_off_roi
             ):
@@ -622,6 +629,7 @@ class CadDetector:
         prep: PreparedTemplate,
         cfo: FloatArray,
         scale: float,
+        near_roi: BoolArray | None = None,
     ) -> tuple[float, float]:
         """(continuation, off-ROI support) of a posed template against the measured scene, given the (H * W,)
         pixels `others` explained by other accepted poses. Continuation: of the valid pixels in a ring 3-8 px
@@ -630,7 +638,8 @@ class CadDetector:
         noise of the tangent plane of the nearest visible sample, with a normal within 25 degrees of its: the
         surface the pose claims goes on where the template has ended; their share in each of 8 sectors round the
         silhouette's centre, the third largest returned (several sides, not one touching neighbour). Off-ROI
-        support: the share of its visible samples supported by depth outside the ROI (`ppf.depth_counts`)."""
+        support: the share of its visible samples supported by depth outside `near_roi` (default: the ROI;
+        `ppf.depth_counts`)."""
         import cv2
 
         opts = self.options
@@ -640,8 +649,9 @@ class CadDetector:
         if len(pv) < 3:
             return 0.0, 0.0
         roi2 = in_roi.reshape(h, w)
+        near = roi2 if near_roi is None else near_roi.reshape(h, w)
         c = ppf.depth_counts(
-            prep.samples * scale, prep.normals, cfo[None], self._depth, roi2, k, opts.explain_tol_m, opts.noise_per_m2
+            prep.samples * scale, prep.normals, cfo[None], self._depth, near, k, opts.explain_tol_m, opts.noise_per_m2
         )[0]
         off = float(c[1]) / max(int(c[3]), 1)
         uv = kernels.project_pinhole(pv, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
