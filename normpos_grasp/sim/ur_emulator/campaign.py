@@ -123,8 +123,8 @@ class CaseResult:
             out.append(f"abort (signal {-(self.exit_code or 0)})")
         if self.exit_code != self.expected_exit:
             out.append(f"exit {self.exit_code} (expected {self.expected_exit})")
-        if self.traceback:
-            out.append("traceback")
+        if self.traceback:  # its last line names the exception
+            out.append(f"traceback ({self.stderr[-1].strip()[:160]})")
         if len(self.error_lines) != 1:
             out.append(f"{len(self.error_lines)} error lines")
         if self.motion_after_stop:
