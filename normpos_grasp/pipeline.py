@@ -30,6 +30,7 @@ from normpos_grasp.typing import FloatArray
 
 __all__ = ["FrameResult", "PipelineOptions", "ReuseOptions", "make_segmenter", "perceive", "process_frame"]
 
+
 @dataclass(frozen=True)
 class ReuseOptions:
     """When `perceive` keeps an accepted fit of the previous frame instead of fitting the object again: its new mask
