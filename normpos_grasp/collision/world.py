@@ -172,6 +172,13 @@ def _manager(objects: list[fcl.CollisionObject]) -> fcl.DynamicAABBTreeCollision
     return mgr
 
 
+def held_radius(mesh: Any) -> float:
+    """A held object's bounding radius about its own origin (not its centre), m: what `CollisionWorld.holding`
+    and `configs_clear(held_rows=...)` give it."""
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    return float(np.linalg.norm(verts, axis=1).max()) if len(verts) else 0.0
+
+
 def bounding_radius(kind: str, size: Any) -> float:
     """Radius of the sphere about a primitive's centre that encloses it, m."""
     v = [float(x) for x in size]
@@ -367,12 +374,11 @@ class CollisionWorld:
     def holding(self, name: str, mesh: trimesh.Trimesh, tcp_from_object: ArrayLike) -> Iterator[None]:
         """Inside the block the tool holds `mesh` rigidly at `tcp_from_object` (4, 4) (after a grasp): it moves
         with the TCP in arm and config queries, and the world element `name` (the object where it lay) is left out."""
-        verts = np.asarray(mesh.vertices, dtype=np.float64)
         held = _Held(
             name,
             fcl.CollisionObject(bvh_for(mesh), fcl.Transform()),
             np.asarray(tcp_from_object, dtype=np.float64),
-            float(np.linalg.norm(verts, axis=1).max()) if len(verts) else 0.0,  # about the object origin
+            held_radius(mesh),
         )
         before = self._held
         self._held = held

@@ -214,7 +214,6 @@ class RtdeDriver(GuardedDriver):
         self._link_lost = False
         self._abandoned: list[Any] = []  # control interfaces left after a link loss (see _backend_link_lost)
         self._calls: _CallThread | None = None  # runs the bounded calls, one at a time (made at connect)
-        self._stuck_calls: list[str] = []  # bounded calls that never returned (their clients were cut off)
 
     # ------------------------------------------------------------------ bounded calls
     def _bounded(self, what: str, timeout_s: float, call: Callable[..., _T], *args: Any) -> _T:
@@ -248,7 +247,6 @@ class RtdeDriver(GuardedDriver):
         client ends its receive thread (so it cannot reconnect on its own) and turns its sends into no-ops (ur_rtde
         writes only while connected), so whatever that call would send next never leaves. The client object is kept
         alive for good: the waiting thread still reads its state. `resume()` connects a fresh client."""
-        self._stuck_calls.append(what)
         self._calls = None  # its thread waits in the stuck call for good; a fresh one comes with the next connect
         note = dashboard_stop(self.host)
         clients = [c for c in (self._c, self._io) if c is not None]

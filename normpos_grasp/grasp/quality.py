@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.geometry.transforms import invert_pose
+from normpos_grasp.grasp.synthesis import tcp_frame
 from normpos_grasp.records.tool import ToolModel
 from normpos_grasp.typing import FloatArray
 
@@ -344,9 +345,7 @@ def _friendliness(
     r = opts.cup_diameter_m / 2.0
     com = np.asarray(getattr(mesh, "center_mass", np.asarray(mesh.bounds).mean(axis=0)), dtype=np.float64)
     good = np.zeros(len(pts), dtype=bool)
-    for k, (p, n) in enumerate(zip(pts, nrm, strict=True)):
-        if weight > f_vac:
-            break
+    for k, (p, n) in enumerate(zip(pts, nrm, strict=True)):  # the weight is within f_vac (the payload check)
         # patch facing up, the cup straight down on it: the weight pulls along the cup axis, its moment about the
         # cup centre is the weight times the centre of mass's distance from the axis
         moment = weight * float(np.linalg.norm(np.cross(com - p, n)))
@@ -381,12 +380,7 @@ def _tcp_on(point: FloatArray, approach: FloatArray) -> FloatArray:
     """(4, 4) TCP pose at `point` with z along `approach` (x any perpendicular: the cup is round)."""
     z = np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    pose = np.eye(4)
-    pose[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    pose[:3, 3] = point
-    return pose
+    return tcp_frame(z, np.cross(helper, z), point)
 
 
 def measured_seal(points: FloatArray, world_from_tcp: FloatArray, options: QualityOptions | None = None) -> bool:

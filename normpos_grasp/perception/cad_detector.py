@@ -676,13 +676,13 @@ class CadDetector:
         valid = (depth > 0).astype(np.float64)
         num = cv2.boxFilter(depth * valid, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
         den = cv2.boxFilter(valid, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        vv, uu = np.nonzero(grown(8) & ~grown(3) & (depth > 0) & (den >= 13))
+        ok_s = (depth > 0) & (den >= 13)
+        vv, uu = np.nonzero(grown(8) & ~grown(3) & ok_s)
         if len(vv) == 0:
             return 0.0, off
         from scipy.spatial import cKDTree
 
         _, j = cKDTree(uv).query(np.stack([uu + u0, vv + v0], axis=1).astype(np.float64))
-        ok_s = (depth > 0) & (den >= 13)
         scale_s = np.where(ok_s, num / np.maximum(den, 1.0) / np.where(depth > 0, depth, 1.0), 0.0)
         ps = pmap[v0:v1, u0:u1] * scale_s[:, :, None]  # the mean depth along each pixel's ray
         p = ps[vv, uu]

@@ -500,11 +500,13 @@ def _arm_at_poses(
 ) -> tuple[Hit | None, str]:
     """First hit of the arm at entry, pre-grasp, grasp (empty-handed) and of arm, tool and held target at lift and
     exit, on one branch q (5, 6); fcl runs only where the bounding spheres cannot prove a pose clear."""
+    from normpos_grasp.collision.world import held_radius  # fcl stays out of this module's import
+
     tcp_from_object = invert_pose(poses[2]) @ target.world_from_object
     if world.held_name:
         clear = world.configs_clear(q[:3], c.opening_m)
     else:  # one sphere pass: empty-handed at entry, pre-grasp and grasp, holding the target at lift and exit
-        clear = world.configs_clear(q, c.opening_m, _HELD_ROWS, tcp_from_object, target.name, _held_radius(target.mesh))
+        clear = world.configs_clear(q, c.opening_m, _HELD_ROWS, tcp_from_object, target.name, held_radius(target.mesh))
     for p in (2, 1, 0):  # grasp first: the most constrained
         hit = None if clear[p] else world.check_arm(q[p])
         if hit is not None:
@@ -522,12 +524,6 @@ def _arm_at_poses(
 
 
 _HELD_ROWS = np.array([False, False, False, True, True])
-
-
-def _held_radius(mesh: object) -> float:
-    """The held object's bounding radius about its origin, m, as `CollisionWorld.holding` computes it."""
-    verts = np.asarray(mesh.vertices, dtype=np.float64)  # type: ignore[attr-defined]
-    return float(np.linalg.norm(verts, axis=1).max()) if len(verts) else 0.0
 
 
 def _with_score(
