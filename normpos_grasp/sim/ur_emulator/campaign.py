@@ -60,6 +60,7 @@ _INTO_MOVE_S = {"movej": 0.9, "movel": 0.5, "stream": 1.2, "run": 0.4}
 _MOVEL_SCRIPT = """
 import sys
 import numpy as np
+from normpos_grasp.errors import NormposError
 from normpos_grasp.execution import SafetyLimits, SupervisedRtdeDriver, exit_code, stop_signals
 host, dz = sys.argv[1], float(sys.argv[2])
 drv = SupervisedRtdeDriver(host, SafetyLimits.for_model("ur5e"))
@@ -76,6 +77,9 @@ with stop_signals():
     except KeyboardInterrupt as exc:
         print(f"normpos-grasp moveL: interrupted, arm stopped (exit {exit_code(exc)})", file=sys.stderr, flush=True)
         sys.exit(exit_code(exc))
+    except NormposError as exc:  # a fault the driver raised (and stopped the arm for): one line, as the CLI does
+        print(f"normpos-grasp moveL: {exc}", file=sys.stderr, flush=True)
+        sys.exit(2)
 """
 
 
