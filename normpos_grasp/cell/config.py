@@ -23,7 +23,7 @@ from normpos_grasp.errors import CellConfigError, ExtrinsicsError, InputError, N
 from normpos_grasp.io.yaml_safe import load_yaml_file
 from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.ur_params import JOINT_NAMES, UR_PARAMS
-from normpos_grasp.records.tool import ToolModel, parallel_gripper, suction_tool, tool_from_gripper
+from normpos_grasp.records.tool import ToolModel, parallel_gripper, suction_tool, tool_from_gripper, with_idle
 from normpos_grasp.typing import FloatArray
 
 from .gripper_driver import GripperDriverSpec, parse_gripper_driver
@@ -302,8 +302,21 @@ class CellConfig:
     watch: WatchSpec | None = None  # the `watch:` section (None: no zone watch, no drift check)
     wrist_camera: WristCamera | None = None  # `camera: {mount: wrist, ...}` (world_from_camera is then None)
     bins: tuple[BinSpec, ...] = ()
+    # every tool on the flange (`gripper:` as a list), the first = `tool`, each with the others' bodies among its
+    # shapes (`records.tool.with_idle`); a one-tool cell has (tool,). gripper_drivers: each tool's `driver`
+    tools: tuple[ToolModel, ...] = ()
+    gripper_drivers: tuple[GripperDriverSpec | None, ...] = ()
 
     def __post_init__(self) -> None:
+        if not self.tools or self.tools[0] is not self.tool:
+            # a cell built with one tool, or whose `tool` was replaced (`dataclasses.replace`): that tool alone
+            object.__setattr__(self, "tools", (self.tool,))
+            object.__setattr__(self, "gripper_drivers", ())
+        if len(self.gripper_drivers) != len(self.tools) or self.gripper_drivers[0] is not self.gripper_driver:
+            rest = self.gripper_drivers[1:] if len(self.gripper_drivers) == len(self.tools) else ()
+            object.__setattr__(
+                self, "gripper_drivers", (self.gripper_driver, *rest) + (None,) * (len(self.tools) - 1 - len(rest))
+            )
         bins = tuple(self.bins)
         if not bins and self.bin is not None:
             bins = (self.bin,)
@@ -312,6 +325,29 @@ class CellConfig:
         if self.bin is not None and all(b.name != self.bin.name for b in bins):
             raise CellConfigError(f"bin {self.bin.name!r} is not one of the cell's bins {[b.name for b in bins]}")
         object.__setattr__(self, "bins", bins)
+
+    def with_tool(self, tool: ToolModel) -> CellConfig:
+        """This cell planning with `tool` (one of `tools`) alone: `tool` and `tools` = (tool,), its driver."""
+        driver = self.tool_named(tool.name)[1]
+        return replace(self, tool=tool, tools=(tool,), gripper_driver=driver, gripper_drivers=(driver,))
+
+    def tool_named(self, name: str) -> tuple[ToolModel, GripperDriverSpec | None]:
+        """The tool called `name` (a plan's `tool.name`) and its `driver`; InputError naming the cell's tools."""
+        for tool, driver in zip(self.tools, self.gripper_drivers, strict=True):
+            if tool.name == name:
+                return tool, driver
+        names = ", ".join(t.name for t in self.tools)
+        raise InputError(f"cell {self.name!r} has no tool {name!r}; its tools: {names}")
+
+    def refuse_dual_tool(self, what: str) -> None:
+        """InputError when the cell has several tools on its flange: `what` (a real controller's driver) switches
+        one gripper's wiring only, so it cannot actuate the tool a plan chose."""
+        if len(self.tools) > 1:
+            names = ", ".join(t.name for t in self.tools)
+            raise InputError(
+                f"cell {self.name!r} has {len(self.tools)} tools on its flange ({names}); {what} actuates one gripper "
+                "and cannot switch to the tool a plan chose: use --robot sim, or a cell with one gripper"
+            )
 
     def bin_named(self, name: str) -> BinSpec:
         """The bin called `name`; InputError naming the cell's bins otherwise."""
@@ -390,7 +426,13 @@ class CellConfig:
 
 
 # packaged in normpos_grasp/examples/cells
-BUILTIN_CELLS = ("ur5e_bin_parallel", "ur10e_conveyor_suction", "ur5e_wrist_camera", "ur5e_two_bins")
+BUILTIN_CELLS = (
+    "ur5e_bin_parallel",
+    "ur10e_conveyor_suction",
+    "ur5e_wrist_camera",
+    "ur5e_two_bins",
+    "ur5e_bin_dual",
+)
 
 
 def resolve_cell(name_or_path: str | Path) -> CellConfig:
@@ -942,7 +984,8 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     lim = np.minimum(np.asarray(params.position_limit), 2 * np.pi)
     if np.any(np.abs(home) > lim):
         raise _err("robot.home", f"home {home.tolist()} is outside the joint limits +-{lim.tolist()} rad")
-    tool = _tool(_req(data, "gripper", ""), "gripper", model)
+    tools, drivers = _tools(_req(data, "gripper", ""), model)
+    tool = tools[0]
 
     boxes: list[BoxSpec] = []
     if "table" in data:
@@ -968,6 +1011,8 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     if mount not in CAMERA_MOUNTS:
         raise _err("camera.mount", f"expected one of {', '.join(CAMERA_MOUNTS)}, got {_short(mount)}")
     if mount == "wrist":
+        if len(tools) > 1:
+            raise _err("gripper", "a wrist camera with two tools on the flange is not supported: give one gripper")
         floor = _camera_floor(floor_z, boxes, bins)
         wrist = _wrist_camera(data["camera"], base_dir, model, world_from_base, tool.flange_from_tcp, limits, floor)
         tool = wrist.mounted_on(tool)
@@ -1046,12 +1091,55 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         source=source,
         robot_serial=serial,
         floor_z=floor_z,
-        gripper_driver=(
-            parse_gripper_driver(data["gripper"]["driver"], "gripper.driver", tool.kind, tool.stroke_m)
-            if "driver" in data["gripper"]
-            else None
-        ),
+        gripper_driver=drivers[0],
         watch=_watch(data["watch"], base_dir) if "watch" in data else None,
         wrist_camera=wrist,
         bins=tuple(bins),
+        tools=(tool, *tools[1:]),
+        gripper_drivers=drivers,
     )
+
+
+MAX_TOOLS = 2  # tools on one flange (`gripper:` as a list)
+
+
+def _tools(v: Any, robot: str) -> tuple[list[ToolModel], tuple[GripperDriverSpec | None, ...]]:
+    """The cell's tools and their drivers: `gripper:` as one mapping, or a list of 1-2 mappings (a dual-tool
+    flange: each tool's shapes then include the other's body, `with_idle`, drawn back by its `retract_m` along its
+    approach axis when it sits on a slide: a suction cup that extends past the jaws only when it is used)."""
+    if isinstance(v, dict):
+        tool = _tool(v, "gripper", robot)
+        driver = (
+            parse_gripper_driver(v["driver"], "gripper.driver", tool.kind, tool.stroke_m) if "driver" in v else None
+        )
+        return [tool], (driver,)
+    if not isinstance(v, list) or not 1 <= len(v) <= MAX_TOOLS:
+        raise _err(
+            "gripper", f"expected a mapping or a list of 1-{MAX_TOOLS} mappings (tools on one flange), got {_short(v)}"
+        )
+    tools: list[ToolModel] = []
+    drivers: list[GripperDriverSpec | None] = []
+    retracts: list[float] = []
+    for i, entry in enumerate(v):
+        path = f"gripper[{i}]"
+        if isinstance(entry, dict) and "retract_m" in entry:
+            if len(v) < 2:
+                raise _err(f"{path}.retract_m", "a tool is drawn back only beside another tool on the flange")
+            retracts.append(_length(entry["retract_m"], f"{path}.retract_m", 0.0, 0.5))
+            entry = {k: x for k, x in entry.items() if k != "retract_m"}
+        else:
+            retracts.append(0.0)
+        tool = _tool(entry, path, robot)
+        if any(t.name == tool.name for t in tools):
+            raise _err(
+                f"{path}.model", f"tool {tool.name!r} is given twice; each tool on the flange needs its own model name"
+            )
+        tools.append(tool)
+        drivers.append(
+            parse_gripper_driver(entry["driver"], f"{path}.driver", tool.kind, tool.stroke_m)
+            if "driver" in entry
+            else None
+        )
+    if len(tools) > 1:
+        tools = [with_idle(tools[0], tools[1], retracts[1]), with_idle(tools[1], tools[0], retracts[0])]
+    return tools, tuple(drivers)

@@ -189,3 +189,39 @@ def tool_from_gripper(gripper: Any) -> ToolModel:
         payload_kg=float(getattr(gripper, "payload_kg", 3.0)),
         cup_diameter_m=float(getattr(gripper, "cup_diameter_m", 0.0)) if kind == "suction" else 0.0,
     )
+
+
+#: name prefix of the shapes a dual-tool end effector's idle tool adds to the active one (`with_idle`)
+IDLE_PREFIX = "idle/"
+
+
+def own_shapes(tool: ToolModel) -> tuple[ToolShape, ...]:
+    """The shapes of `tool` itself, without the idle tool's that `with_idle` added."""
+    return tuple(s for s in tool.shapes if not s.name.startswith(IDLE_PREFIX))
+
+
+def with_idle(active: ToolModel, idle: ToolModel, idle_retract_m: float = 0.0) -> ToolModel:
+    """`active` with `idle`'s body added to its shapes, in `active`'s TCP frame (both TCPs given from the same
+    flange): the whole end effector of a dual-tool flange as the collision checker sees it when `active` is used.
+    The idle jaws stand at their smallest opening (fixed, `moves` 0); an idle tool on a slide is drawn back
+    `idle_retract_m` (m) along its approach axis, towards the flange; the idle tool's own idle shapes are left out."""
+    retract = np.eye(4)
+    retract[2, 3] = -float(idle_retract_m)
+    tcp_from_idle_tcp = np.linalg.inv(np.asarray(active.flange_from_tcp)) @ np.asarray(idle.flange_from_tcp) @ retract
+    added = []
+    for s, pose in idle.posed_shapes(idle.min_opening_m):
+        if s.name.startswith(IDLE_PREFIX):
+            continue
+        added.append(ToolShape(f"{IDLE_PREFIX}{idle.name}/{s.name}", s.size, tcp_from_idle_tcp @ pose, 0, s.kind))
+    return ToolModel(
+        name=active.name,
+        kind=active.kind,
+        flange_from_tcp=active.flange_from_tcp,
+        stroke_m=active.stroke_m,
+        min_opening_m=active.min_opening_m,
+        shapes=(*own_shapes(active), *added),
+        finger_depth_m=active.finger_depth_m,
+        max_grip_depth_m=active.max_grip_depth_m,
+        payload_kg=active.payload_kg,
+        cup_diameter_m=active.cup_diameter_m,
+    )
