@@ -27,6 +27,7 @@ from normpos_grasp.collision.world import CollisionWorld
 from normpos_grasp.errors import PlanningError, SafetyViolation
 from normpos_grasp.geometry.transforms import invert_pose
 from normpos_grasp.grasp.candidates import CandidateOptions, candidates_for_object, primitive_template
+from normpos_grasp.grasp.quality import judge
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.planning.branches import half_turn_symmetric, place_poses, quickest_grasp, ranked_place_configs
 from normpos_grasp.planning.evaluate import EvaluationOptions, evaluate_candidates
@@ -36,6 +37,7 @@ from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.normpos import NormPosition
 from normpos_grasp.records.plan import Evaluation, PickPlan, Target, Trajectory, Waypoint
 from normpos_grasp.records.template import TemplateFit
+from normpos_grasp.records.tool import IDLE_PREFIX
 from normpos_grasp.typing import BoolArray, FloatArray
 
 logger = logging.getLogger(__name__)
@@ -199,17 +201,45 @@ def plan_pick(
     A cell with several bins (`cell.bins`): every bin's walls are in the collision world and every perceived part an
     obstacle; the parts are sorted into bins by their centre (`CellConfig.bin_of`; parts in no bin are not picked)
     and the bins are tried in turn from `cell.bin` on (`_plan_bins`): a part of bin B gets the candidates, the bin
-    entry and exit height and the places of bin B only. The plan names its bin and the bins seen empty."""
+    entry and exit height and the places of bin B only. The plan names its bin and the bins seen empty.
+
+    A cell with several tools on its flange (`cell.tools`): the same frame is planned with each tool (the cell with
+    that tool alone, `CellConfig.with_tool`; each tool's shapes hold the idle one's body) and the plan whose chosen
+    grasp has the best predicted success (`grasp.quality.judge`), then the best ranking score, is kept; ties go to
+    the earlier tool. The plan's `tool` is the one chosen. With no plan for any tool: the first tool's
+    'no_feasible_grasp' plan with every tool's evaluations and rejection counts."""
     opts = options or PlanOptions()
     t_start = time.perf_counter()
     timing: dict[str, float] = {}
     arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
     world, targets, templates = build_world(cell, fits, normpositions, arm, opts)
     world.set_arm(arm)
-    world.set_tool(cell.tool)
-    world.update()
     timing["world"] = (time.perf_counter() - t_start) * 1e3
     home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
+    plans = []
+    for tool in cell.tools:
+        one = cell if len(cell.tools) == 1 else cell.with_tool(tool)
+        world.set_tool(tool)
+        world.update()
+        plans.append(_plan_tool(targets, templates, normpositions, world, arm, one, home, opts, dict(timing), t_start))
+    if len(plans) == 1:
+        return plans[0]
+    return _best_tool_plan(plans, opts)
+
+
+def _plan_tool(
+    targets: list[Target],
+    templates: list[Any],
+    normpositions: Sequence[NormPosition],
+    world: CollisionWorld,
+    arm: ArmModel,
+    cell: CellConfig,
+    home: FloatArray,
+    opts: PlanOptions,
+    timing: dict[str, float],
+    t_start: float,
+) -> PickPlan:
+    """`plan_pick` with the world's tool set to `cell.tool` (the cell's only tool)."""
     if len(cell.bins) > 1:
         return _plan_bins(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start)
     t0 = time.perf_counter()
@@ -219,10 +249,72 @@ def plan_pick(
     walls = cell.bin.world_from_bin[:3, :2].T.copy() if cell.bin is not None else None
     for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
         candidates.extend(
-            candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
+            _turned(
+                candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls), cell
+            )
         )
     timing["candidates"] = (time.perf_counter() - t0) * 1e3
     return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
+
+
+#: turns about the TCP z axis offered for each candidate of a tool with an idle tool beside it (`_turned`)
+_TURNS = {"parallel": (np.pi,), "suction": (np.pi / 2, np.pi, 3 * np.pi / 2)}
+
+
+def _turned(candidates: list[GraspCandidate], cell: CellConfig) -> list[GraspCandidate]:
+    """The candidates, and for a tool that holds an idle tool's body (a dual-tool flange: not half-turn symmetric)
+    each also turned about its approach axis (`@turn<k>` in the id): the jaws' half turn, the cup's quarter turns,
+    the same grasp of the part with the idle tool on another side (away from a wall or a neighbour)."""
+    if not any(s.name.startswith(IDLE_PREFIX) for s in cell.tool.shapes):
+        return candidates
+    out = list(candidates)
+    for k, angle in enumerate(_TURNS[cell.tool.kind]):
+        c, s = np.cos(angle), np.sin(angle)
+        turn = np.array([[c, -s, 0.0, 0.0], [s, c, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+        out.extend(
+            replace(cand, grasp_id=f"{cand.grasp_id}@turn{k + 1}", world_from_tcp=cand.world_from_tcp @ turn)
+            for cand in candidates
+        )
+    return out
+
+
+def predicted_success(plan: PickPlan, options: PlanOptions | None = None) -> float:
+    """The grip mechanics' predicted success of the plan's chosen grasp with the plan's tool (`grasp.quality.judge`
+    on the fitted template); 0 for a plan with no grasp, 1 with the mechanics turned off."""
+    if plan.chosen is None:
+        return 0.0
+    mechanics = (options or PlanOptions()).evaluation.mechanics
+    if mechanics is None:
+        return 1.0
+    c = plan.chosen.candidate
+    t = plan.targets[c.target]
+    mech = judge(
+        c.scheme, t.mesh, t.mass_kg, t.world_from_object, c.world_from_tcp, plan.tool, mechanics, t.measured_points
+    )
+    return float(mech.success) if mech.ok else 0.0
+
+
+def _best_tool_plan(plans: list[PickPlan], opts: PlanOptions) -> PickPlan:
+    """Of one frame's plans with each tool (the cell's order), the planned one whose grasp has the best predicted
+    success, then the best ranking score (the first on a tie); with none planned, the first plan carrying every
+    plan's evaluations and rejection counts. Timings are summed over the tools."""
+    timing: Counter[str] = Counter()
+    for p in plans:
+        timing.update(p.timing_ms)
+    ok = [p for p in plans if p.status == "ok" and p.chosen is not None]
+    if ok:
+        best = max(ok, key=lambda p: (round(predicted_success(p, opts), 6), p.chosen.score if p.chosen else -np.inf))
+        return replace(best, timing_ms=dict(timing))
+    counts: Counter[str] = Counter()
+    for p in plans:
+        counts.update(p.counts)
+    return replace(
+        plans[0],
+        evaluations=tuple(e for p in plans for e in p.evaluations),
+        counts=dict(counts),
+        n_feasible=sum(p.n_feasible for p in plans),
+        timing_ms=dict(timing),
+    )
 
 
 def _candidate_options(cell: CellConfig, opts: PlanOptions) -> CandidateOptions:
@@ -286,7 +378,10 @@ def _plan_bins(
         for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
             if held_in[k] == b.name:
                 candidates.extend(
-                    candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
+                    _turned(
+                        candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls),
+                        cell,
+                    )
                 )
         timing["candidates"] = timing.get("candidates", 0.0) + (time.perf_counter() - t0) * 1e3
         one = replace(cell, bin=b, places=places)
