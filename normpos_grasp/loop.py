@@ -181,7 +181,7 @@ class SyntheticBinSource:
                 self.layout.world_from_object[part],
                 neighbours,
                 self.layout.static_boxes,
-                _physics_gripper(self.cell),
+                _physics_gripper(self.cell, plan.tool),
                 plan.chosen.candidate.world_from_tcp,
                 max(plan.chosen.candidate.opening_m, 1e-3),
                 # lift out of the bin (as the plan does) before the sideways shake, so the hand clears the rim
@@ -747,10 +747,16 @@ def _mesh_centre(mesh: Any, world_from_object: FloatArray) -> FloatArray:
     return pose[:3, :3] @ centre + pose[:3, 3]
 
 
-def _physics_gripper(cell: CellConfig) -> Any:
-    """The physics model of the cell's gripper: the packaged gripper of that name, else one built from the tool."""
+def _physics_gripper(cell: CellConfig, tool: Any = None) -> Any:
+    """The physics model of the cell's gripper: the packaged gripper of that name, else one built from the tool; on
+    a dual-tool flange that of `tool` (the plan's; default the first) with the idle tool's body."""
     from normpos_grasp.kinematics.gripper import Gripper
     from normpos_grasp.sim.physics import GripperSpec
+
+    if len(cell.tools) > 1:
+        from normpos_grasp.sim.tool_hand import tool_spec
+
+        return tool_spec(tool if tool is not None else cell.tool)
 
     try:
         return Gripper.load(cell.tool.name)

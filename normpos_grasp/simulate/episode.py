@@ -43,6 +43,7 @@ from normpos_grasp.planning.plan import rejections_by_target, stop_line
 from normpos_grasp.planning.push import Push, PushHand
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
+from normpos_grasp.sim.tool_hand import PRESETS, tool_spec
 from normpos_grasp.simulate.trace import LeftPart, dominant_reason, failure_picture, left_parts
 from normpos_grasp.typing import FloatArray
 
@@ -202,31 +203,24 @@ def scene_seed(seed: int, scene_index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(scene_index), 0x51D]).generate_state(1)[0])
 
 
-PHYSICS_PRESETS = ("2f85", "2f140", "suction")
+PHYSICS_PRESETS = PRESETS
 
 
 def gripper_spec(cell: Any, override: str) -> GripperSpec:
-    """The physics model of the cell's gripper, or of `override` (a packaged gripper or a preset name)."""
-    from normpos_grasp.kinematics.gripper import Gripper
+    """The physics model of the cell's gripper (its first tool), or of `override` (a packaged gripper or a preset
+    name; one-tool cells only)."""
+    if override and len(getattr(cell, "tools", ())) > 1:
+        raise InputError(
+            f"--gripper replaces a one-tool cell's gripper; cell {cell.name!r} has {len(cell.tools)} tools "
+            f"({', '.join(t.name for t in cell.tools)}): leave --gripper out"
+        )
+    return tool_spec(cell.tool, override)
 
-    name = override or str(getattr(cell.tool, "name", ""))
-    try:
-        return GripperSpec.from_gripper(Gripper.load(name))
-    except NormposError as exc:  # the cell's own tool may be unpackaged: the preset of its kind stands in
-        if override and override not in PHYSICS_PRESETS:
-            raise InputError(
-                f"unknown gripper {override!r} for --gripper: give a packaged gripper or one of "
-                f"{', '.join(PHYSICS_PRESETS)} ({exc})"
-            ) from exc
-        logger.debug("gripper %r not packaged (%s); using the %s preset", name, exc, cell.tool.kind)
-    if name in PHYSICS_PRESETS:
-        return GripperSpec.preset(name)
-    spec = GripperSpec.preset("suction" if cell.tool.kind == "suction" else "2f85")
-    if cell.tool.kind == "parallel" and cell.tool.stroke_m > 0:
-        spec = replace(spec, stroke_m=float(cell.tool.stroke_m))
-    if cell.tool.kind == "suction" and cell.tool.cup_diameter_m > 0:
-        spec = replace(spec, cup_diameter_m=float(cell.tool.cup_diameter_m))  # the cell's own cup, not the preset's
-    return spec
+
+def gripper_specs(cell: Any, override: str) -> dict[str, GripperSpec]:
+    """The physics model of each of the cell's tools by name (`tool_spec`); a plan is replayed with its tool's."""
+    gripper_spec(cell, override)  # refuses --gripper on a dual-tool cell
+    return {t.name: tool_spec(t, override) for t in cell.tools}
 
 
 def _world_from_bin(cell: Any) -> FloatArray:
@@ -253,7 +247,8 @@ class _Setup:
 
     cell: Any
     library: tuple[Template, ...]
-    spec: GripperSpec
+    spec: GripperSpec  # the first tool's (pushes and drags)
+    specs: dict[str, GripperSpec]  # each tool's by name: a pick is replayed with its plan's tool
     sensor: Any
     camera: Any
     samples: dict[str, FloatArray]
@@ -307,6 +302,7 @@ def _setup(config: SimulationConfig) -> _Setup:
         cell=cell,
         library=library,
         spec=gripper_spec(cell, config.gripper),
+        specs=gripper_specs(cell, config.gripper),
         sensor=sensor_preset(config.sensor),
         camera=camera,
         samples={t.name: _model_points(t) for t in library},
@@ -557,14 +553,15 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             fit_err = float("inf")  # the wrong template was fitted (or none: a primitive box of the measurement)
         neighbours = [(templates[j], poses[j]) for j in range(len(templates)) if j != k]
         t1 = time.perf_counter()
+        hand = setup.specs.get(plan.tool.name, spec)  # the chosen tool's (cup or jaws) on a dual-tool flange
         result = validate_grasp(
             templates[k],
             true_pose,
             neighbours,
             statics,
-            spec,
+            hand,
             cand.world_from_tcp,
-            max(float(cand.opening_m), 1e-3) if spec.kind == "parallel" else 0.0,
+            max(float(cand.opening_m), 1e-3) if hand.kind == "parallel" else 0.0,
             physics_opts,
         )
         physics_ms = (time.perf_counter() - t1) * 1e3
