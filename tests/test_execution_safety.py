@@ -123,6 +123,21 @@ def test_plan_status_and_robot_checked() -> None:
         parse_plan({"status": "ok", "robot": "ur5e", "joint_waypoints": [{"name": "a", "q": [0, 0]}]})
 
 
+def test_plan_format_and_tool_openings_checked() -> None:
+    """Another plan format, and a tool opening that is no length or more than the tool's stroke, are refused
+    before anything connects; a plan without `format` (hand-written) is read by its fields."""
+    parse_plan({**_plan([HOME]), "format": "normpos-grasp/plan@1"})
+    with pytest.raises(InputError, match="plan.format"):
+        parse_plan({**_plan([HOME]), "format": "normpos-grasp/plan@2"})
+    for bad in (-0.5, float("inf"), float("nan"), "85mm", True):
+        with pytest.raises(InputError, match="plan.tool.opening_m"):
+            parse_plan({**_plan([HOME]), "tool": {"flange_from_tcp": np.eye(4).tolist(), "opening_m": bad}})
+    too_wide = {**_plan([HOME]), "tool": {"stroke_m": 0.085}, "grasp": {"opening_m": 0.12}}
+    with pytest.raises(InputError, match="stroke"):
+        parse_plan(too_wide)
+    parse_plan({**too_wide, "grasp": {"opening_m": 0.06}})
+
+
 def test_trajectory_must_pass_through_waypoints() -> None:
     q1 = HOME + np.array([0.3, 0, 0, 0, 0, 0])
     plan = _plan([HOME, q1], np.linspace(0.0, 2.0, 101))

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.errors import DriverFault, InputError, SafetyViolation
+from normpos_grasp.records.plan import PLAN_FORMAT
 from normpos_grasp.typing import FloatArray
 from normpos_grasp.validation import as_float_array, check_pose
 
@@ -114,7 +115,15 @@ def load_plan(path: str | Path) -> dict[str, Any]:
 
 
 def parse_plan(plan: dict[str, Any]) -> ParsedPlan:
-    """Validate the fields execution needs; InputError naming the bad field."""
+    """Validate the fields execution needs; InputError naming the bad field. A plan without `format` (written by
+    hand or by another tool) is read by its fields; one that names another format, or another version of this one,
+    is refused."""
+    fmt = plan.get("format")
+    if fmt is not None and fmt != PLAN_FORMAT:
+        raise InputError(
+            f"plan.format: {_short(fmt)} is not this version's plan format {PLAN_FORMAT!r}; re-plan with "
+            "`normpos-grasp plan`"
+        )
     status = plan.get("status")
     if status != "ok":
         raise InputError(f"plan status is {status!r}, not 'ok': there is nothing to execute (see its candidates)")
@@ -153,6 +162,18 @@ def parse_plan(plan: dict[str, Any]) -> ParsedPlan:
         traj_t = as_float_array(t_raw, "plan.trajectory.t", (None,))
         traj_q = as_float_array(q_raw, "plan.trajectory.q", (traj_t.shape[0], 6))
     tool = plan.get("tool") or {}
+    if not isinstance(tool, dict):
+        raise InputError(f"plan.tool: expected a mapping, got {_short(tool)}")
+    for key in ("opening_m", "stroke_m"):
+        if key in tool:
+            _metres(tool[key], f"plan.tool.{key}")
+    opening = _grasp_opening(plan)
+    stroke = tool.get("stroke_m")
+    if opening is not None and stroke is not None and float(stroke) > 0.0 and opening > float(stroke) + 1e-6:
+        raise InputError(
+            f"plan: the grasp opening {opening * 1000:.1f} mm is more than the tool's stroke "
+            f"{float(stroke) * 1000:.1f} mm (plan.tool.stroke_m)"
+        )
     flange_from_tcp = (
         check_pose(tool["flange_from_tcp"], "plan.tool.flange_from_tcp") if "flange_from_tcp" in tool else None
     )
@@ -205,16 +226,26 @@ def _split_trajectory(parsed: ParsedPlan) -> list[tuple[FloatArray, FloatArray]]
     return [(parsed.traj_t[a : b + 1], parsed.traj_q[a : b + 1]) for a, b in zip(idx[:-1], idx[1:], strict=True)]
 
 
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _metres(value: Any, what: str) -> float:
+    """A jaw opening or stroke in [0, 2) m; InputError naming `what` otherwise (NaN, inf, text, negative)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= float(value) < 2.0:
+        raise InputError(f"{what}: expected a length in metres in [0, 2), got {_short(value)}")
+    return float(value)
+
+
 def _grasp_opening(plan: dict[str, Any]) -> float | None:
     """The plan's jaw opening before closing (`grasp.opening_m`, else `tool.opening_m`), m; None when absent or 0
     (a suction grasp)."""
     for key in ("grasp", "tool"):
         entry = plan.get(key)
         if isinstance(entry, dict) and "opening_m" in entry:
-            value = entry["opening_m"]
-            if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= float(value) < 2.0:
-                raise InputError(f"plan.{key}.opening_m: expected an opening in metres, got {value!r}")
-            return float(value) if value > 0 else None
+            value = _metres(entry["opening_m"], f"plan.{key}.opening_m")
+            return value if value > 0 else None
     return None
 
 
