@@ -155,3 +155,60 @@ def test_resolve_library_refuses_clashing_names_and_ids(tmp_path: Path) -> None:
     _one_template(tmp_path / "b", "spacer", 3)
     with pytest.raises(TemplateError, match="obj_id 3 is used by 'bar'"):
         resolve_library(["builtin", str(tmp_path / "b")])
+
+
+_BOX_YAML = "name: slab\nunits: mm\nshape: box\nmesh: mesh.stl\n"
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        ("grasp: []\n", "grasp: unknown key; did you mean 'grasps'"),
+        ("label: [a]\n", "label: expected non-empty text"),
+        ("obj_id: two\n", "obj_id: expected a whole number"),
+        ("obj_id: 0\n", "obj_id: expected a whole number"),
+        ("mass_kg: heavy\n", "mass_kg: expected a finite number"),
+        ("control_points: [1, 2, 3]\n", "control_points: expected a mapping"),
+        ("control_points: {far: [2000, 0, 0]}\n", "control_points.far: .* outside the part's bounding box"),
+        ("grasps: [{id: g, scheme: parallel, position: [0, 0, 500]}]\n", "grasp 'g': its TCP .* outside"),
+        ("grasps: [{id: g, scheme: parallel, opening: -5}]\n", r"grasps\[0\].opening: expected a length >= 0"),
+        ("grasps: [{id: g, scheme: parallel, priority: .nan}]\n", r"grasps\[0\].priority: expected a finite"),
+        ("grasps: [{id: g, scheme: parallel, matrix: [1, 2]}]\n", r"grasps\[0\].matrix: expected 4x4"),
+        ("grasps: [{id: g, scheme: parallel, matrix: [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]\n", "not a rigid"),
+        ("grasps: [{id: g, scheme: parallel}, {id: g, scheme: suction}]\n", "ids must be unique"),
+        ("grasps: [{id: g, scheme: parallel, widht: 3}]\n", "widht: unknown key"),
+        ("symmetry: {discrete: [{axis: [0, 0, 1], angle_deg: 90}]}\n", "does not map the mesh onto itself"),
+        ("symmetry: {continuous: [{axis: [0, 0, 1]}]}\n", r"continuous\[0\] .* does not map the mesh onto itself"),
+        ("symmetry: {discrete: {axis: [0, 0, 1]}}\n", "symmetry.discrete: expected a list of mappings"),
+        ("symmetry: {discret: []}\n", "symmetry.discret: unknown key; did you mean 'discrete'"),
+    ],
+)
+def test_a_bad_template_field_is_one_clear_error(tmp_path: Path, extra: str, match: str) -> None:
+    """A 60 x 30 x 10 mm slab: every field a careless file gets wrong is refused naming the field (before, a typo
+    was ignored, a 90 degree 'symmetry' of a 2:1 box was believed, a grasp 0.5 m off the part was kept)."""
+    folder = _write(tmp_path / "slab", _BOX_YAML + extra, trimesh.creation.box((60.0, 30.0, 10.0)))
+    with pytest.raises(TemplateError, match=match):
+        load_template(folder)
+
+
+def test_true_and_nearly_true_symmetries_are_kept(tmp_path: Path) -> None:
+    """The slab's half turns pass; so does a continuous axis of a pin with a 1 mm deep flat along its side (a CAD
+    detail the declaration ignores), but not of one with a 6 mm flat."""
+    slab = _write(
+        tmp_path / "slab",
+        _BOX_YAML + "symmetry: {discrete: [{axis: [0, 0, 1], angle_deg: 180}, {axis: [1, 0, 0], angle_deg: 180}]}\n",
+        trimesh.creation.box((60.0, 30.0, 10.0)),
+    )
+    assert len(load_template(slab).symmetry.discrete) == 2
+    pin = "name: pin\nunits: mm\nshape: cylinder\nmesh: mesh.stl\nsymmetry: {continuous: [{axis: [0, 0, 1]}]}\n"
+    for depth_mm, kept in ((1.0, True), (6.0, False)):
+        flat = trimesh.creation.cylinder(radius=20.0, height=30.0, sections=96)
+        v = np.array(flat.vertices)
+        v[:, 0] = np.minimum(v[:, 0], 20.0 - depth_mm)
+        flat.vertices = v
+        folder = _write(tmp_path / f"pin_{depth_mm:g}", pin, flat)
+        if kept:
+            assert len(load_template(folder).symmetry.continuous) == 1
+        else:
+            with pytest.raises(TemplateError, match="does not map the mesh onto itself"):
+                load_template(folder)
