@@ -239,20 +239,53 @@ def _plan_tool(
     timing: dict[str, float],
     t_start: float,
 ) -> PickPlan:
-    """`plan_pick` with the world's tool set to `cell.tool` (the cell's only tool)."""
+    """`plan_pick` with the world's tool set to `cell.tool` (the cell's only tool). A tool that holds an idle tool's
+    body (a dual-tool flange: lopsided) without a plan is planned once more with every candidate turned about its
+    approach axis (`_turned`: the same grasps with the idle body on another side); the turned copies go in a second
+    pass so that they do not take the feasible slots of other grasps in the first."""
+    plan = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, False)
+    if plan.status == "ok" or not any(s.name.startswith(IDLE_PREFIX) for s in cell.tool.shapes):
+        return plan
+    turned = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, True)
+    if turned.status == "ok":
+        return turned
+    counts = Counter(plan.counts)
+    counts.update(turned.counts)
+    return replace(
+        plan,
+        evaluations=plan.evaluations + turned.evaluations,
+        counts=dict(counts),
+        timing_ms={**turned.timing_ms, "total": turned.timing_ms.get("total", 0.0)},
+    )
+
+
+def _plan_once(
+    targets: list[Target],
+    templates: list[Any],
+    normpositions: Sequence[NormPosition],
+    world: CollisionWorld,
+    arm: ArmModel,
+    cell: CellConfig,
+    home: FloatArray,
+    opts: PlanOptions,
+    timing: dict[str, float],
+    t_start: float,
+    turned: bool,
+) -> PickPlan:
+    """One planning pass of `_plan_tool`: the candidates as synthesised, or (`turned`) only their turned copies."""
     if len(cell.bins) > 1:
-        return _plan_bins(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start)
+        return _plan_bins(
+            targets, templates, normpositions, world, arm, cell, home, opts, dict(timing), t_start, turned
+        )
     t0 = time.perf_counter()
     candidates: list[GraspCandidate] = []
     cand_opts = _candidate_options(cell, opts)
     # symmetric parts are also offered jaws closing along the bin's walls (palm parallel to the nearest wall)
     walls = cell.bin.world_from_bin[:3, :2].T.copy() if cell.bin is not None else None
     for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
-        candidates.extend(
-            _turned(
-                candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls), cell
-            )
-        )
+        found = candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
+        candidates.extend(_turned(found, cell) if turned else found)
+    timing = dict(timing)
     timing["candidates"] = (time.perf_counter() - t0) * 1e3
     return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
 
@@ -262,12 +295,9 @@ _TURNS = {"parallel": (np.pi,), "suction": (np.pi / 2, np.pi, 3 * np.pi / 2)}
 
 
 def _turned(candidates: list[GraspCandidate], cell: CellConfig) -> list[GraspCandidate]:
-    """The candidates, and for a tool that holds an idle tool's body (a dual-tool flange: not half-turn symmetric)
-    each also turned about its approach axis (`@turn<k>` in the id): the jaws' half turn, the cup's quarter turns,
-    the same grasp of the part with the idle tool on another side (away from a wall or a neighbour)."""
-    if not any(s.name.startswith(IDLE_PREFIX) for s in cell.tool.shapes):
-        return candidates
-    out = list(candidates)
+    """Each candidate turned about its approach axis (`@turn<k>` in the id): the jaws' half turn, the cup's quarter
+    turns, the same grasp of the part with a tool's idle neighbour on another side (away from a wall or a part)."""
+    out: list[GraspCandidate] = []
     for k, angle in enumerate(_TURNS[cell.tool.kind]):
         c, s = np.cos(angle), np.sin(angle)
         turn = np.array([[c, -s, 0.0, 0.0], [s, c, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
@@ -346,6 +376,7 @@ def _plan_bins(
     opts: PlanOptions,
     timing: dict[str, float],
     t_start: float,
+    turned: bool = False,
 ) -> PickPlan:
     """`plan_pick` in a cell with several bins: the bins in turn from `cell.bin` on, each with a part in it and a
     free place of its own, planned as a one-bin cell (its walls for the candidates, its rim for the entry and exit,
@@ -377,12 +408,8 @@ def _plan_bins(
         candidates: list[GraspCandidate] = []
         for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
             if held_in[k] == b.name:
-                candidates.extend(
-                    _turned(
-                        candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls),
-                        cell,
-                    )
-                )
+                found = candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
+                candidates.extend(_turned(found, cell) if turned else found)
         timing["candidates"] = timing.get("candidates", 0.0) + (time.perf_counter() - t0) * 1e3
         one = replace(cell, bin=b, places=places)
         plan = plan_from_candidates(candidates, targets, world, arm, one, home, opts, dict(timing), t_start)
