@@ -42,16 +42,16 @@ def _fit(template: Template, xyz: tuple[float, float, float]) -> TemplateFit:
 def test_the_dual_cell_has_both_tools_each_with_the_others_body() -> None:
     assert [t.name for t in DUAL.tools] == ["2f85", "suction_30"] and DUAL.tool is JAWS
     assert JAWS.kind == "parallel" and CUP.kind == "suction" and CUP.cup_diameter_m == pytest.approx(0.03)
-    # the extended cup's lip 60 mm off the flange axis, 40 mm past the jaw tips (0.163 m from the flange)
-    assert np.allclose(CUP.flange_from_tcp[:3, 3], [0.0, 0.06, 0.203])
+    # the extended cup's lip 55 mm off the flange axis, 40 mm past the jaw tips (0.163 m from the flange)
+    assert np.allclose(CUP.flange_from_tcp[:3, 3], [0.0, 0.055, 0.203])
     assert {s.name for s in JAWS.shapes if s.name.startswith(IDLE_PREFIX)} == {
         "idle/suction_30/cup", "idle/suction_30/stem", "idle/suction_30/body"
     }  # fmt: skip
     idle_jaws = [s for s in CUP.shapes if s.name.startswith(IDLE_PREFIX)]
     assert len(idle_jaws) == len(own_shapes(JAWS)) and all(s.moves == 0 for s in idle_jaws)
-    # the idle cup, seen from the jaws' TCP: drawn back 90 mm on its slide, the lip 37 mm above the jaws' TCP
+    # the idle cup, seen from the jaws' TCP: drawn back 100 mm on its slide, the lip 47 mm above the jaws' TCP
     cup = next(s for s in JAWS.shapes if s.name == "idle/suction_30/cup")
-    assert np.allclose(cup.tcp_from_shape[:3, 3], [0.0, 0.06, 0.053 - 0.09 - 0.005])
+    assert np.allclose(cup.tcp_from_shape[:3, 3], [0.0, 0.055, 0.053 - 0.10 - 0.005])
     # the idle jaws, seen from the cup's TCP: their tips 40 mm behind the extended lip
     tip = min(s.tcp_from_shape[2, 3] + s.size[2] / 2 for s in CUP.shapes if "finger" in s.name)
     assert tip == pytest.approx(-0.04)
@@ -118,8 +118,8 @@ def test_a_sphere_no_cup_seals_on_is_planned_with_the_jaws() -> None:
 
 
 def test_the_idle_cup_is_in_the_jaws_collision_model() -> None:
-    # a top-down pinch 55 mm from the bin's +y wall, the TCP 10 cm under the rim: the palm (37.5 mm half width)
-    # clears it, the drawn-back idle cup beside the palm (45-75 mm off the jaw axis) lies in the wall when it is on
+    # a top-down pinch 55 mm from the bin's +y wall, the TCP 11 cm under the rim: the palm (37.5 mm half width)
+    # clears it, the drawn-back idle cup beside the palm (40-70 mm off the jaw axis) lies in the wall when it is on
     # the wall's side
     wall = next(b for b in DUAL.static_boxes if b.name == "bin/wall_y+")
     inner_y = float(wall.world_from_box[1, 3] - wall.size[1] / 2)
@@ -147,7 +147,8 @@ def test_a_cube_by_the_wall_is_grasped_with_the_cup_away_from_it() -> None:
     tcp = plan.chosen.world_from_tcp[2] if plan.chosen.world_from_tcp is not None else None
     assert tcp is not None
     cup_y = (tcp @ next(s for s in JAWS.shapes if s.name == "idle/suction_30/cup").tcp_from_shape)[1, 3]
-    assert cup_y < y  # the cup on the bin's side of the part, not in the wall
+    inner_y = float(wall.world_from_box[1, 3] - wall.size[1] / 2)
+    assert cup_y + 0.015 < inner_y  # the idle cup (30 mm) clear of the wall: turned away from it, or along it
 
 
 def test_the_physics_hand_is_the_chosen_tools_with_the_idle_body() -> None:
@@ -167,14 +168,17 @@ def test_the_physics_hand_is_the_chosen_tools_with_the_idle_body() -> None:
 def test_execution_switches_to_the_chosen_tools_outputs_and_a_real_controller_is_refused() -> None:
     from types import SimpleNamespace
 
-    from normpos_grasp.cli.run import tool_outputs_hook
+    from normpos_grasp.execution.safety import SafetyLimits
+    from normpos_grasp.loop import tool_outputs_hook
 
-    driver = SimpleNamespace(gripper=None)
+    driver = SimpleNamespace(gripper=None, limits=SafetyLimits.from_cell(DUAL))
     hook = tool_outputs_hook(DUAL, driver)
-    hook(SimpleNamespace(tool=CUP))
-    assert (driver.gripper.close_output, driver.gripper.open_output, driver.gripper.grip_detect_input) == (2, 3, 2)
+    hook(SimpleNamespace(tool=CUP))  # the cup's vacuum (2) and release (3) outputs, its TCP judged
+    assert (driver.gripper.close_output, driver.gripper.open_output, driver.gripper.grip_detect_input) == (2, 3, None)
+    assert np.allclose(driver.limits.flange_from_tcp, CUP.flange_from_tcp)
     hook(SimpleNamespace(tool=JAWS))
-    assert (driver.gripper.close_output, driver.gripper.open_output, driver.gripper.grip_detect_input) == (0, 1, 1)
+    assert (driver.gripper.close_output, driver.gripper.open_output) == (0, 1)
+    assert np.allclose(driver.limits.flange_from_tcp, JAWS.flange_from_tcp)
     with pytest.raises(InputError, match="no tool 'other'"):
         hook(SimpleNamespace(tool=replace(JAWS, name="other")))
     with pytest.raises(InputError, match="cannot switch to the tool a plan chose"):
