@@ -174,7 +174,7 @@ def _pick_and_push(
     from dataclasses import replace
 
     from normpos_grasp.errors import PlanningError
-    from normpos_grasp.loop import _physics_gripper
+    from normpos_grasp.loop import _physics_gripper, tool_outputs_hook
     from normpos_grasp.pipeline import PipelineOptions
     from normpos_grasp.planning.plan import PlanOptions
     from normpos_grasp.planning.push import PushHand, plan_push, push_motion
@@ -183,6 +183,7 @@ def _pick_and_push(
     from normpos_grasp.sim.physics_push import simulate_push
 
     pipeline = PipelineOptions(plan=PlanOptions(pick_unmatched=opts.pick_unmatched))
+    dual = len(cell.tools) > 1  # each plan's tool gets its outputs (the driver is in this process)
     records: list[PickRecord] = []
     pushes: list[dict[str, Any]] = []
     offset = 0
@@ -194,7 +195,7 @@ def _pick_and_push(
     while True:
         turn = run_cell_loop(
             cell, source, segmenter, library, driver, execute=True, max_picks=opts.max_picks - len(records),
-            on_pick=heard, options=pipeline,
+            on_pick=heard, options=pipeline, before_execute=tool_outputs_hook(cell, driver) if dual else None,
         )  # fmt: skip
         records.extend(replace(r, index=r.index + offset) for r in turn)
         offset = len(records)

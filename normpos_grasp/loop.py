@@ -456,7 +456,12 @@ def run_cell_loop(
                     look.running() if look is not None else nullcontext(),
                 ):
                     report = execute_plan(
-                        driver, plan_json, limits, dry_run=not execute, gripper=gripper, options=run_options
+                        driver,
+                        plan_json,
+                        plan_limits(cell, plan, limits),
+                        dry_run=not execute,
+                        gripper=gripper,
+                        options=run_options,
                     )
             except ZoneIntrusion as exc:
                 timings["execute"] = (time.perf_counter() - t0) * 1e3
@@ -745,6 +750,31 @@ def _mesh_centre(mesh: Any, world_from_object: FloatArray) -> FloatArray:
     centre = np.asarray(mesh.bounds, dtype=np.float64).mean(axis=0)
     pose = np.asarray(world_from_object, dtype=np.float64)
     return pose[:3, :3] @ centre + pose[:3, 3]
+
+
+def plan_limits(cell: CellConfig, plan: PickPlan, limits: SafetyLimits) -> SafetyLimits:
+    """The limits that judge `plan`: `limits` (the cell's), or on a dual-tool flange the same cell's with the plan's
+    tool mounted (its TCP for the workspace box and the plan's tool check; the same caps)."""
+    if len(cell.tools) == 1:
+        return limits
+    return SafetyLimits.from_cell(cell.with_tool(cell.tool_named(plan.tool.name)[0]))
+
+
+def tool_outputs_hook(cell: CellConfig, driver: Any) -> Callable[[PickPlan], None]:
+    """For a dual-tool cell on a driver that switches its outputs in this process (the simulated one, the demo's
+    loopback controller): before each plan is sent, the driver's gripper outputs become those of the plan's tool
+    (its `gripper[i].driver` wiring: the cup's vacuum and release outputs, the jaws' close / open) and its limits
+    those with that tool's TCP (`plan_limits`). No grip-detect input is read there (nothing in the simulated arm
+    drives one): the source's check judges the pick, as for a one-tool cell on these drivers."""
+    from normpos_grasp.execution.driver import GripperIO
+    from normpos_grasp.execution.gripper_config import gripper_io
+
+    def hook(plan: PickPlan) -> None:
+        wiring = gripper_io(cell.tool_named(plan.tool.name)[1]) or GripperIO()
+        driver.gripper = replace(wiring, grip_detect_input=None)
+        driver.limits = plan_limits(cell, plan, driver.limits)
+
+    return hook
 
 
 def _physics_gripper(cell: CellConfig, tool: Any = None) -> Any:

@@ -13,8 +13,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from normpos_grasp.cell.gripper_driver import GripperDriverSpec, RobotiqDriverSpec
 from normpos_grasp.errors import InputError
 from normpos_grasp.execution import (
@@ -122,12 +120,13 @@ def _limits(
     else:
         cell = None
     if cell is not None:
+        cell = _plan_tool_cell(args, plan, cell)
         if cell.robot_model != robot:
             raise InputError(f"plan is for {robot!r} but cell {cell.name!r} has a {cell.robot_model!r}")
         limits = SafetyLimits.from_cell(cell, max_tool_accel=cell.motion.tcp_acceleration_m_s2)
         if args.workspace is not None:
             raise InputError("--workspace is for an arm outside any cell; the cell's workspace judges this plan")
-        return limits, cell.robot_serial, _plan_tool_driver(args, plan, cell)
+        return limits, cell.robot_serial, cell.gripper_driver
     ws = args.workspace
     bare = SafetyLimits.for_model(
         robot,
@@ -139,20 +138,17 @@ def _limits(
     return bare, None, None
 
 
-def _plan_tool_driver(args: argparse.Namespace, plan: dict[str, Any], cell: Any) -> GripperDriverSpec | None:
-    """The `driver` of the tool the plan was made with: on a dual-tool cell the one its `tool.name` names (its TCP
-    must be the plan's), refused for a real controller, which cannot switch between the tools."""
+def _plan_tool_cell(args: argparse.Namespace, plan: dict[str, Any], cell: Any) -> Any:
+    """The cell with the tool the plan was made with (a dual-tool cell: the one its `tool.name` names, whose TCP and
+    driver then judge and drive it; the plan's TCP is still checked against it); a real controller is refused for a
+    dual-tool cell, since it cannot switch between the tools."""
     if len(cell.tools) == 1:
-        return cell.gripper_driver
+        return cell
     recorded = plan.get("tool")
-    name = str(recorded.get("name", "")) if isinstance(recorded, dict) else ""
-    tool, driver = cell.tool_named(name)
-    tcp = np.asarray(recorded.get("flange_from_tcp", np.full((4, 4), np.nan)) if isinstance(recorded, dict) else 0.0)
-    if tcp.shape != (4, 4) or not np.allclose(tcp, tool.flange_from_tcp, atol=1e-6):
-        raise InputError(f"the plan's tool {name!r} has another TCP than cell {cell.name!r}'s: re-plan in this cell")
+    tool, _ = cell.tool_named(str(recorded.get("name", "")) if isinstance(recorded, dict) else "")
     if args.execute and args.robot != "sim":
         cell.refuse_dual_tool(f"the controller at {args.robot}")
-    return driver
+    return cell.with_tool(tool)
 
 
 def _flag_wiring(args: argparse.Namespace) -> GripperIO:

@@ -227,6 +227,8 @@ def run(args: argparse.Namespace) -> int:
                     if args.robot == "sim" and len(cell.tools) > 1:
                         # a dual-tool flange: each plan's tool gets its own outputs (the cup's vacuum, the jaws')
                         driver = SimDriver(limits, q_home=np.asarray(cell.home_q, dtype=np.float64), options=options)
+                        from normpos_grasp.loop import tool_outputs_hook
+
                         before_execute = tool_outputs_hook(cell, driver)
                     elif args.robot == "sim":
                         if spec is not None:
@@ -395,18 +397,6 @@ def _library_sources(args: argparse.Namespace, cell: Any, library: Any) -> tuple
     if all(builtin.get(t.name) == template_sha256(t) for t in library):
         return ()
     return (str(cell.templates_path),) if cell.templates_path is not None else ()
-
-
-def tool_outputs_hook(cell: Any, driver: Any) -> Any:
-    """For a dual-tool cell on the simulated driver: before each plan is sent, the driver's gripper outputs become
-    those of the plan's tool (its `gripper[i].driver` wiring: the cup's vacuum output, the jaws' close / open)."""
-    from normpos_grasp.execution.driver import GripperIO
-    from normpos_grasp.execution.gripper_config import gripper_io
-
-    def hook(plan: Any) -> None:
-        driver.gripper = gripper_io(cell.tool_named(plan.tool.name)[1]) or GripperIO()
-
-    return hook
 
 
 def emulated_part_hook(source: Any, cell: Any, robot: str, spec: Any) -> Any:
