@@ -8,6 +8,7 @@ import signal
 import sys
 from typing import Any
 
+from normpos_grasp.cli.args import float_in
 from normpos_grasp.errors import InputError
 from normpos_grasp.sim.ur_emulator import EmulatorOptions, UREmulator
 
@@ -22,8 +23,12 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--model", default="ur5e", help="UR model (ur3e, ur5e, ur10e, ur16e, ur20, ur30)")
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.0.0.x)")
-    parser.add_argument("--unlock-delay", type=float, default=5.0, help="seconds before a protective stop unlocks")
-    parser.add_argument("--q-home", type=float, nargs=6, default=None, help="initial joints (rad)")
+    parser.add_argument(
+        "--unlock-delay", type=float_in(0.0, 3600.0, "s"), default=5.0, help="seconds before a protective stop unlocks"
+    )
+    parser.add_argument(
+        "--q-home", type=float_in(-6.2832, 6.2832, "rad"), nargs=6, default=None, help="initial joints (rad)"
+    )
     parser.add_argument("--serial", default="20265500001", help="serial number the dashboard reports")
     parser.add_argument(
         "--rt-priority", type=int, default=0, help="SCHED_FIFO priority of the 500 Hz loop (0: normal scheduling)"

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from normpos_grasp.cli.args import float_in
 from normpos_grasp.errors import InputError
 
 logger = logging.getLogger(__name__)
@@ -46,11 +47,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pile-first-seed", type=int, default=400000, help="seed of the first dense-pile scene")
     p.add_argument("--steps", type=int, default=3000, help="optimiser steps")
     p.add_argument("--batch", type=int, default=16, help="images per step")
-    p.add_argument("--lr", type=float, default=4e-3, help="peak learning rate")
+    p.add_argument("--lr", type=float_in(1e-7, 1.0), default=4e-3, help="peak learning rate")
     p.add_argument("--input-size", type=_size, default=(192, 256), help="network input WxH (multiples of 32)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     p.add_argument("--init-from", type=Path, default=None, help="start from this .pt state dict (fine-tuning)")
-    p.add_argument("--time-limit-min", type=float, default=0.0, help="stop training after this many minutes (0: none)")
+    p.add_argument(
+        "--time-limit-min",
+        type=float_in(0.0, 1e5, "min"),
+        default=0.0,
+        help="stop training after this many minutes (0: none)",
+    )
     p.add_argument("--checkpoint-every", type=int, default=0, help="save OUT/normpos_seg.pt every N steps (0: at end)")
     p.set_defaults(handler=run)
 

@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from normpos_grasp.cli.args import float_in
+
 
 def register(subparsers: Any) -> None:
     p = subparsers.add_parser(
@@ -23,8 +25,12 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--report", type=Path, required=True, help="report folder holding scene.glb")
     p.add_argument("--port", type=int, default=8765, help="port on 127.0.0.1 (0: any free port)")
-    p.add_argument("--poll", type=float, default=1.0, help="seconds between checks for a changed scene.glb")
-    p.add_argument("--seconds", type=float, default=0.0, help="stop after this many seconds (0: until Ctrl-C)")
+    p.add_argument(
+        "--poll", type=float_in(0.05, 60.0, "s"), default=1.0, help="seconds between checks for a changed scene.glb"
+    )
+    p.add_argument(
+        "--seconds", type=float_in(0.0, 1e6, "s"), default=0.0, help="stop after this many seconds (0: until Ctrl-C)"
+    )
     p.set_defaults(handler=run)
 
 
