@@ -5,15 +5,21 @@
    with the default options (`normpos-grasp teach`'s defaults: 4 min budget, 2F-85); wall time per part.
 2. Perception: --scenes bins of the packaged cell 'ur5e_bin_parallel' (seeds --seed.., none used by teach),
    --count parts each drawn from the new parts and the eight built-in ones (the new parts weighted to half the
-   draws), D435 noise, 640x480, through pipeline.perceive with the GT and the depth segmenter. Per new part:
-   eligible objects (>= 400 visible px, visible fraction >= 0.3; bench_pipeline's protocol), pose recall (the
-   matched instance's accepted fit is the right template with ADD(-S) < 0.1 d) and wrong accepted fits (a new-part
-   template accepted on another object, or another template on a new part).
+   draws), D435 noise, 640x480, through pipeline.perceive with the GT masks, the bundled model (its masks
+   class-agnostic: the library has labels it lacks, perception.factory.for_library) and the depth segmenter. Per
+   new part: eligible objects (>= 400 visible px, visible fraction >= 0.3; bench_pipeline's protocol); segmentation
+   recall (eligible new-part objects matched one-to-one by an instance mask at IoU >= 0.5) and precision (of the
+   instances whose mask overlaps a new part most, those matched to it at IoU >= 0.5); pose recall (the matched
+   instance's accepted fit is the right template with ADD(-S) < 0.1 d) and wrong accepted fits (a new-part
+   template accepted on another object, or another template on a new part, or ADD(-S) >= 0.1 d).
 3. Picks: `normpos-grasp simulate --library LIB --library builtin` on --sim-scenes bins of --sim-count parts drawn
    from the new parts (GT segmenter, the physics judge), share of picks held.
 
     nice -n 10 .venv/bin/python benchmarks/bench_teach.py [--parts t_profile,flanged_bushing] [--scenes 6]
-        [--count 8] [--sim-scenes 3] [--sim-count 4] [--seed 9300]
+        [--count 8] [--sim-scenes 3] [--sim-count 4] [--seed 9300] [--segmenters gt,model,depth] [--taught DIR]
+
+--taught DIR skips step 1 and uses a library `teach` wrote before (its parts are the new parts); --sim-scenes 0
+skips step 3.
 """
 
 from __future__ import annotations
@@ -49,7 +55,8 @@ def main() -> None:
     ap.add_argument("--sim-scenes", type=int, default=3)
     ap.add_argument("--sim-count", type=int, default=4)
     ap.add_argument("--seed", type=int, default=9300)
-    ap.add_argument("--segmenters", default="gt,depth")
+    ap.add_argument("--segmenters", default="gt,model,depth")
+    ap.add_argument("--taught", type=Path, default=None, help="a taught library to use instead of step 1")
     args = ap.parse_args()
 
     from normpos_grasp.cell import resolve_cell
@@ -65,8 +72,13 @@ def main() -> None:
     names = [n.strip() for n in args.parts.split(",") if n.strip()]
     work = Path(tempfile.mkdtemp(prefix="bench_teach_"))
     lib = work / "lib"
-    print(f"1. teach ({load()} at start)")
-    for name in names:
+    if args.taught is not None:
+        lib = args.taught
+        names = sorted(p.name for p in lib.iterdir() if (p / "template.yaml").is_file())
+        print(f"1. teach: skipped, the parts {names} taught before in {lib}")
+    else:
+        print(f"1. teach ({load()} at start)")
+    for name in names if args.taught is None else ():
         path = teach_parts.write_part(name, work / "cad")
         t0, c0 = time.perf_counter(), time.process_time()
         (part,) = teach([path], lib, TeachOptions())
@@ -89,8 +101,10 @@ def main() -> None:
     sensor = sensor_preset("d435")
     diam = {t.name: prepare(t).diameter for t in library}
     kinds = [k.strip() for k in args.segmenters.split(",") if k.strip()]
-    segs = {k: (None if k == "gt" else make_segmenter(k)) for k in kinds}
-    tally = {k: {"eligible": 0, "correct": 0, "wrong": 0, "accepted": 0} for k in kinds}
+    labels = {t.label for t in library}
+    segs = {k: (None if k == "gt" else make_segmenter(k, labels=labels)) for k in kinds}
+    keys = ("eligible", "correct", "wrong", "accepted", "seg_found", "seg_inst", "seg_ok")
+    tally = {k: dict.fromkeys(keys, 0) for k in kinds}
     t0 = time.perf_counter()
     for i in range(args.scenes):
         layout = compose_cell_scene(cell, args.count, args.seed + i, library, draw)
@@ -108,6 +122,11 @@ def main() -> None:
             fits = {n.instance_id: f for n, f in zip(result.normpositions, result.fits, strict=True)}
             tl = tally[kind]
             tl["eligible"] += sum(int(eligible[k]) for k, t in enumerate(templates) if t.name in names)
+            tl["seg_found"] += sum(int(eligible[k] and templates[k].name in names) for k in matched.values())
+            for j in range(len(result.instances)):
+                if best[j][0] >= 0 and templates[best[j][0]].name in names:
+                    tl["seg_inst"] += 1
+                    tl["seg_ok"] += int(j in matched)
             for j, inst in enumerate(result.instances):
                 fit = fits.get(inst.instance_id)
                 part = matched.get(j, best[j][0])
@@ -128,10 +147,20 @@ def main() -> None:
     )
     for kind, tl in tally.items():
         recall = tl["correct"] / max(tl["eligible"], 1)
+        seg = ""
+        if kind != "gt":
+            seg = (
+                f"segmentation recall {tl['seg_found'] / max(tl['eligible'], 1):.3f} ({tl['seg_found']}/"
+                f"{tl['eligible']}), precision {tl['seg_ok'] / max(tl['seg_inst'], 1):.3f} ({tl['seg_ok']}/"
+                f"{tl['seg_inst']}) at IoU 0.5; "
+            )
         print(
-            f"  {kind}: new-part pose ADD(-S) recall {recall:.3f} ({tl['correct']}/{tl['eligible']} eligible), "
+            f"  {kind}: {seg}new-part pose ADD(-S) recall {recall:.3f} ({tl['correct']}/{tl['eligible']} eligible), "
             f"wrong accepted {tl['wrong']} of {tl['accepted']} accepted fits involving a new part"
         )
+    if args.sim_scenes <= 0:
+        print(f"(library in {lib})")
+        return
 
     out = work / "sim"
     t0 = time.perf_counter()

@@ -18,7 +18,7 @@ from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.cad_detector import CadDetector, RegionOfInterest
 from normpos_grasp.perception.change import unchanged
-from normpos_grasp.perception.factory import make_segmenter
+from normpos_grasp.perception.factory import for_library, make_segmenter
 from normpos_grasp.planning.plan import PlanOptions, plan_pick
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.normpos import NormPosition
@@ -120,7 +120,8 @@ def perceive(
     if instances is not None:
         found = list(instances)
     elif segmenter is not None:
-        found = segmenter.segment(frame)
+        # a model that lacks some of the library's labels (taught parts): its masks class-agnostic, the fit names them
+        found = for_library(segmenter, {t.label for t in templates}).segment(frame)
     else:
         raise InputError("perceive needs a segmenter or the frame's instances")
     timings["segment"] = _ms(t0)

@@ -8,17 +8,25 @@ it loads and knows every label of the library, else the depth segmenter, with a 
 to 'cad': on held-out piles (benchmarks/bench_cad.py) the cad detector still accepts wrong poses (precision 0.72;
 the depth segmenter's fitted segments 1.0 on the same frames) and takes seconds per frame, so it is chosen only by
 name until its figures reach its targets (docs/cad_detection.md).
+
+Parts the model was not trained on (a library with labels the model lacks, such as parts made with `teach`): the
+model's masks are used class-agnostically (`ClassAgnostic`, from `for_library`): each instance's label becomes ''
+(the model's class stays as a hint), so every library template whose size could explain the mask competes in the fit,
+the best verified fit names the part, and a second template that explains it about as well makes the fit ambiguous
+(rejected): no retraining for a new part (docs/segmentation.md says why this was chosen over a fine-tune). 'auto'
+still takes the depth segmenter for such a library: on bench_teach's bins its masks of taught parts are better.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Collection, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+from normpos_grasp.camera.model import RGBDFrame
 from normpos_grasp.errors import InputError, MissingDependency, NormposError, SegmentationError
-from normpos_grasp.perception.base import Segmenter
+from normpos_grasp.perception.base import Instance, Segmenter
 from normpos_grasp.records.template import Template
 
 logger = logging.getLogger(__name__)
@@ -43,8 +51,9 @@ def choose_segmenter(
 ) -> SegmenterChoice:
     """The segmenter of `kind` (see the module docstring). labels: the library's labels, which 'auto' needs the
     model to know. ground_truth: makes the true-mask segmenter for 'gt'. library: the templates 'cad' detects (it
-    may also get them later from `pipeline.perceive`). Raises InputError for an unknown kind, SegmentationError
-    when the model cannot be loaded (kind 'model')."""
+    may also get them later from `pipeline.perceive`). A model that lacks some of `labels` is returned
+    class-agnostic (`for_library`). Raises InputError for an unknown kind, SegmentationError when the model cannot
+    be loaded (kind 'model')."""
     if kind == "gt":
         if ground_truth is None:
             raise InputError("the 'gt' segmenter needs data with true masks (a BOP scene or a synthetic source)")
@@ -58,7 +67,7 @@ def choose_segmenter(
 
         return SegmenterChoice(CadDetector(library), "cad")
     if kind == "model":
-        return SegmenterChoice(_load_model(model_path), "model")
+        return SegmenterChoice(for_library(_load_model(model_path), labels), "model")
     if kind == "auto":
         try:
             model = _load_model(model_path)
@@ -71,6 +80,38 @@ def choose_segmenter(
             return choose_segmenter("depth")
         return SegmenterChoice(model, "model")
     raise InputError(f"unknown segmenter {kind!r}; choose one of {', '.join(SEGMENTER_KINDS)}")
+
+
+class ClassAgnostic:
+    """A model's masks with the class left to the template fit: `segment` returns the model's instances with label
+    '' and the model's class name in `hints` (instance_id -> name; `source_id` keeps the class index).
+
+    For libraries with parts the model was not trained on: the bundled model masks an unknown part (it learned what
+    a part is on depth and colour, though it often merges touching unknown parts) but names it with one of its own
+    classes (a T-profile 'plate'), which would hand the fit only the wrong templates."""
+
+    def __init__(self, model: Segmenter) -> None:
+        self.model = model
+        self.class_names: tuple[str, ...] = ()  # knows no label: `for_library` never wraps it twice
+        self.hints: dict[int, str] = {}
+
+    def segment(self, frame: RGBDFrame) -> list[Instance]:
+        found = self.model.segment(frame)
+        self.hints = {i.instance_id: i.label for i in found}
+        return [replace(i, label="") for i in found]
+
+
+def for_library(segmenter: Segmenter, labels: Collection[str]) -> Segmenter:
+    """`segmenter` as it should run for a library with `labels`: a model (a segmenter with `class_names`) that lacks
+    some of them becomes `ClassAgnostic`; anything else (and a model that knows every label) is returned as it is."""
+    names = getattr(segmenter, "class_names", None)
+    if names is None or isinstance(segmenter, ClassAgnostic):
+        return segmenter
+    missing = sorted(set(labels) - set(names) - {""})
+    if not missing:
+        return segmenter
+    logger.info("the model does not know the labels %s: its masks are used class-agnostically", missing)
+    return ClassAgnostic(segmenter)
 
 
 def make_segmenter(
