@@ -10,10 +10,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from normpos_grasp.cell.gripper_driver import GripperDriverSpec, RobotiqDriverSpec
+from normpos_grasp.cli.args import float_in
 from normpos_grasp.errors import InputError
 from normpos_grasp.execution import (
     DriverOptions,
@@ -56,19 +58,26 @@ def register(subparsers: Any) -> None:
         help="cell YAML or packaged cell name: the judge of the plan (workspace, mounted tool, caps); default: the "
         "cell the plan records it was made in",
     )
-    parser.add_argument("--speed-fraction", type=float, default=1.0, help="fraction of rated joint speeds allowed")
+    parser.add_argument(
+        "--speed-fraction",
+        type=float_in(0.01, 1.0),
+        default=None,
+        help="fraction of the rated joint speeds allowed (default 1); with a cell it tightens the cell's caps, "
+        "never loosens them",
+    )
     parser.add_argument(
         "--max-joint-accel",
-        type=float,
-        default=4.0,
-        help="joint acceleration cap, rad/s^2 (at most 40, ur_rtde's bound)",
+        type=float_in(0.01, 40.0, "rad/s^2"),
+        default=None,
+        help="joint acceleration cap, rad/s^2 (default 4, at most 40, ur_rtde's bound); with a cell it tightens the "
+        "cell's cap, never loosens it",
     )
     parser.add_argument(
         "--robot-serial", default=None, help="refuse a controller whose `get serial number` is not this one"
     )
     parser.add_argument(
         "--workspace",
-        type=float,
+        type=float_in(-100.0, 100.0, "m"),
         nargs=6,
         default=None,
         metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
@@ -126,16 +135,33 @@ def _limits(
         limits = SafetyLimits.from_cell(cell, max_tool_accel=cell.motion.tcp_acceleration_m_s2)
         if args.workspace is not None:
             raise InputError("--workspace is for an arm outside any cell; the cell's workspace judges this plan")
-        return limits, cell.robot_serial, cell.gripper_driver
+        return _tightened(limits, args), cell.robot_serial, cell.gripper_driver
     ws = args.workspace
     bare = SafetyLimits.for_model(
         robot,
         workspace_min=ws[:3],
         workspace_max=ws[3:],
-        speed_fraction=args.speed_fraction,
-        max_joint_accel=args.max_joint_accel,
+        speed_fraction=1.0 if args.speed_fraction is None else args.speed_fraction,
+        max_joint_accel=4.0 if args.max_joint_accel is None else args.max_joint_accel,
     )
     return bare, None, None
+
+
+def _tightened(limits: SafetyLimits, args: argparse.Namespace) -> SafetyLimits:
+    """The cell's limits with --speed-fraction (of the rated joint speeds) and --max-joint-accel as further caps:
+    each takes the smaller value per joint, so a flag given for a first run on a real arm is never ignored and
+    never raises a cap. A plan timed for the cell's own caps then fails the check: re-plan in a slower cell."""
+    import numpy as np
+
+    from normpos_grasp.kinematics.ur_params import ur_params
+
+    speed, accel = limits.max_joint_speed, limits.max_joint_accel
+    if args.speed_fraction is not None:
+        rated = np.asarray(ur_params(limits.model).velocity_limit, dtype=np.float64)
+        speed = np.minimum(speed, rated * args.speed_fraction)
+    if args.max_joint_accel is not None:
+        accel = np.minimum(accel, args.max_joint_accel)
+    return replace(limits, max_joint_speed=speed, max_joint_accel=accel)
 
 
 def _plan_tool_cell(args: argparse.Namespace, plan: dict[str, Any], cell: Any) -> Any:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from normpos_grasp.cli.args import add_library_args
+from normpos_grasp.cli.args import add_library_args, float_in
 
 SEGMENTERS = ("model", "depth", "gt")
 
@@ -69,7 +69,9 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="with --execute: plan from where the arm is instead of moving to the cell's home first",
     )
-    p.add_argument("--arrive-tol", type=float, default=1e-3, help="joint tolerance for a finished move, rad")
+    p.add_argument(
+        "--arrive-tol", type=float_in(1e-5, 0.05, "rad"), default=1e-3, help="joint tolerance for a finished move, rad"
+    )
     p.add_argument(
         "--out",
         type=Path,
@@ -84,7 +86,12 @@ def register(subparsers: Any) -> None:
         metavar="DIR",
         help="save a replay bundle of every turn under DIR (`normpos-grasp replay BUNDLE`; docs/replay.md)",
     )
-    p.add_argument("--linger", type=float, default=0.0, help="with --view: keep serving this many seconds at the end")
+    p.add_argument(
+        "--linger",
+        type=float_in(0.0, 1e5, "s"),
+        default=0.0,
+        help="with --view: keep serving this many seconds at the end",
+    )
     p.add_argument(
         "--overlap",
         action="store_true",
