@@ -184,3 +184,29 @@ def test_execution_switches_to_the_chosen_tools_outputs_and_a_real_controller_is
     with pytest.raises(InputError, match="cannot switch to the tool a plan chose"):
         DUAL.refuse_dual_tool("the controller at 10.0.0.2")
     resolve_cell("ur5e_bin_parallel").refuse_dual_tool("the controller")  # one tool: nothing to refuse
+
+
+@pytest.mark.slow  # 2-5 s alone at load 5-8 on 2 cores (the pipeline's imports and kernels load here)
+def test_the_dual_cell_clears_a_plate_in_simulate_with_the_chosen_tools_hand(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One plate in the bin, D435 noise at 320x240, ideal masks: planned with one of the two tools, replayed in
+    physics with that tool's hand (jaws or cup, the idle body among its shapes), held, the bin cleared."""
+    import normpos_grasp.simulate.episode as episode
+
+    hands: list[Any] = []
+    validate = episode.validate_grasp
+
+    def spy(*args: Any, **kwargs: Any) -> Any:
+        hands.append(args[4])
+        return validate(*args, **kwargs)
+
+    monkeypatch.setattr(episode, "validate_grasp", spy)
+    config = episode.SimulationConfig(
+        cell_path=str(CELL_FILE), segmenter="gt", parts=("plate",), parts_per_scene=1, resolution=(320, 240)
+    )
+    result = episode.run_scene(config, 0)
+    assert [(p.part, p.success) for p in result.picks] == [("plate", True)], [(p.cause, p.reason) for p in result.picks]
+    assert result.cleared and len(hands) == 1
+    assert hands[0].kind == result.picks[0].scheme  # the hand of the tool the plan chose
+    tool = next(t for t in DUAL.tools if t.kind == hands[0].kind)
+    alone = episode.tool_spec(replace(tool, shapes=own_shapes(tool)))
+    assert len(hands[0].body_shapes) > len(alone.body_shapes)  # with the idle tool's body
