@@ -77,3 +77,22 @@ def test_execute_flags_tighten_a_cells_caps_and_never_loosen_them() -> None:
     same = _tightened(base, argparse.Namespace(speed_fraction=1.0, max_joint_accel=40.0))
     assert np.array_equal(same.max_joint_speed, base.max_joint_speed)
     assert np.array_equal(same.max_joint_accel, base.max_joint_accel)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["synth", "--out", "{tmp}/ds", "--parts", ",,"],
+        ["simulate", "--cell", "ur5e_bin_parallel", "--out", "{tmp}/sim", "--parts", " , "],
+        ["demo", "--out", "{tmp}/demo", "--part-names", ","],
+        ["demo", "--out", "{tmp}/demo", "--parts", "0"],
+    ],
+)
+def test_a_part_list_that_names_nothing_is_refused(
+    argv: list[str], tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:  # type: ignore[no-untyped-def]
+    """',,' (a script's empty variable) is not read as 'every part'; nothing is written."""
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--part" in err[0]
+    assert not any(tmp_path.iterdir())

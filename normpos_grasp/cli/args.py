@@ -51,6 +51,17 @@ def float_in(lo: float, hi: float, unit: str = "") -> Callable[[str], float]:
     return parse
 
 
+def part_names(text: str, flag: str = "--parts") -> tuple[str, ...]:
+    """Comma-separated part names; () for '' or 'default' (every part of the library). InputError for a list that
+    names none (',,': a script's empty variable), so it is never read as 'all parts'."""
+    if text.strip() in ("", "default"):
+        return ()
+    names = tuple(p.strip() for p in text.split(",") if p.strip())
+    if not names:
+        raise InputError(f"{flag}: {text!r} names no part; give comma-separated part names or 'default'")
+    return names
+
+
 def check_out_dir(path: Path, overwrite: bool) -> Path:
     """Validate an output folder without creating it: not a file; empty or absent unless `overwrite`.
 

@@ -6,7 +6,7 @@ import argparse
 from typing import Any
 
 from normpos_grasp.cell.config import BUILTIN_CELLS
-from normpos_grasp.cli.args import add_library_args, library_from_args, library_paths
+from normpos_grasp.cli.args import add_library_args, int_in, library_from_args, library_paths, part_names
 from normpos_grasp.demo import DemoOptions, run_demo
 from normpos_grasp.loop import PickRecord
 
@@ -21,10 +21,10 @@ def register(sub: Any) -> None:
     parser.add_argument("--out", default="demo_out", help="report folder (default: demo_out)")
     parser.add_argument("--cell", default="ur5e_bin_parallel", help=f"cell YAML or one of: {', '.join(BUILTIN_CELLS)}")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
-    parser.add_argument("--parts", type=int, default=4, help="parts dropped into the bin")
+    parser.add_argument("--parts", type=int_in(1, 50), default=4, help="parts dropped into the bin, 1..50")
     parser.add_argument("--part-names", default="", help="comma-separated part names to drop (default: all)")
     add_library_args(parser)
-    parser.add_argument("--max-picks", type=int, default=8, help="most picks to attempt")
+    parser.add_argument("--max-picks", type=int_in(1, 1000), default=8, help="most picks to attempt, 1..1000")
     parser.add_argument(
         "--segmenter",
         choices=("model", "depth", "gt"),
@@ -47,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         segmenter=args.segmenter,
         use_emulator=not args.no_emulator,
         emulator_host=args.emulator_host,
-        part_names=tuple(n for n in args.part_names.split(",") if n),
+        part_names=part_names(args.part_names, "--part-names"),
         library=library_paths(args),
     )
     library = library_from_args(args)  # a bad library or an unknown part is refused before the demo starts

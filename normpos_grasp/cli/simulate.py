@@ -24,6 +24,7 @@ from normpos_grasp.cli.args import (
     int_in,
     library_from_args,
     library_paths,
+    part_names,
 )
 from normpos_grasp.sim.sensor import SENSOR_PRESETS
 
@@ -149,7 +150,7 @@ def _run(args: argparse.Namespace) -> int:
     resolution = parse_resolution(args.resolution)
     if not all(MIN_SIDE <= side <= MAX_SIDE for side in resolution):
         raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
-    parts = () if args.parts == "default" else tuple(p.strip() for p in args.parts.split(",") if p.strip())
+    parts = part_names(args.parts)
     cell = resolve_cell(args.cell)  # the input is read and checked before anything is written
     libraries = tuple(p if p == "builtin" else str(Path(p).resolve()) for p in library_paths(args))
     library = library_from_args(args)  # an unknown part or a bad library is refused before anything is written

@@ -22,7 +22,15 @@ from pathlib import Path
 from typing import Any
 
 from normpos_grasp.atomic import atomic_write_text
-from normpos_grasp.cli.args import OVERWRITE_HELP, add_library_args, float_in, int_in, library_from_args, library_paths
+from normpos_grasp.cli.args import (
+    OVERWRITE_HELP,
+    add_library_args,
+    float_in,
+    int_in,
+    library_from_args,
+    library_paths,
+    part_names,
+)
 from normpos_grasp.errors import InputError
 from normpos_grasp.sim.cameras import parse_resolution
 from normpos_grasp.sim.scene import CONTAINERS, SceneOptions
@@ -85,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     resolution = parse_resolution(args.resolution)
     if not all(MIN_SIDE <= side <= MAX_SIDE for side in resolution):
         raise InputError(f"--resolution: each side must lie in {MIN_SIDE}..{MAX_SIDE} pixels, got {args.resolution}")
-    parts = None if args.parts in ("", "default") else [p.strip() for p in args.parts.split(",") if p.strip()]
+    parts = list(part_names(args.parts)) or None
     library = library_from_args(args)
     if parts is not None:
         library.subset(parts)  # an unknown name is refused (listing the library) before anything is written
