@@ -42,6 +42,33 @@ def test_lmo_scene_camera_depth_gt(lmo_sample: Path) -> None:
         scene.camera(4)
 
 
+def test_an_itodd_style_scene_reads_like_its_png_twin(lmo_sample: Path, tmp_path: Path) -> None:
+    """ITODD stores gray/*.tif and depth/*.tif (16-bit): the LM-O frame rewritten so reads the same depth and a
+    gray image replicated to 3 channels; a float TIFF depth is refused naming the file."""
+    import shutil
+
+    import cv2
+
+    src = lmo_sample / "test" / "000002"
+    dst = tmp_path / "test" / "000002"
+    (dst / "gray").mkdir(parents=True)
+    (dst / "depth").mkdir()
+    shutil.copy(src / "scene_camera.json", dst / "scene_camera.json")
+    png = BopScene(src)
+    raw = png.load_depth_raw(3)
+    gray = cv2.cvtColor(png.load_rgb(3), cv2.COLOR_RGB2GRAY)
+    assert cv2.imwrite(str(dst / "depth" / "000003.tif"), raw)
+    assert cv2.imwrite(str(dst / "gray" / "000003.tif"), gray)
+    tif = read_split(tmp_path / "test")[0]
+    assert np.array_equal(tif.load_depth_raw(3), raw)
+    frame = tif.load_frame(3)
+    assert np.array_equal(frame.depth_m, png.load_frame(3).depth_m)
+    assert frame.rgb.shape == (480, 640, 3) and np.array_equal(frame.rgb[:, :, 0], gray)
+    assert cv2.imwrite(str(dst / "depth" / "000003.tif"), raw.astype(np.float32))
+    with pytest.raises(DatasetError, match="000003.tif decodes as float32"):
+        BopScene(dst).load_depth_raw(3)
+
+
 def test_lmo_models(lmo_sample: Path) -> None:
     models = read_models(lmo_sample / "models")
     can = models[5]

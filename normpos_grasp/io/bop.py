@@ -10,7 +10,7 @@ Layout of one scene folder:
     scene_gt_info.json  {im_id: [{bbox_obj, bbox_visib, px_count_all, px_count_valid, px_count_visib,
                                   visib_fract}, ...]}
     rgb/{im_id:06d}.png|.jpg   (gray/ for grayscale sets)
-    depth/{im_id:06d}.png      uint16
+    depth/{im_id:06d}.png      uint16 (.tif for ITODD)
     mask/{im_id:06d}_{gt_idx:06d}.png, mask_visib/{im_id:06d}_{gt_idx:06d}.png   (0 / 255)
 
 Validation at the boundary (every failure is a `DatasetError` naming the file): scene_camera.json must map image
@@ -50,6 +50,7 @@ logger = logging.getLogger(__name__)
 
 _RGB_DIRS = ("rgb", "gray")
 _RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif")
+_DEPTH_EXTS = (".png", ".tif")  # .tif: ITODD (bop_toolkit dataset_params: depth_ext 'tif', gray/ images in .tif)
 
 #: largest image width or height read (pixels); checked from the header before decoding
 MAX_IMAGE_SIDE = 8192
@@ -303,10 +304,12 @@ class BopScene:
         raise DatasetError(f"no colour image for frame {im_id} under {self.path}/rgb or /gray")
 
     def depth_path(self, im_id: int) -> Path:
-        p = self.path / "depth" / f"{self._check_id(im_id):06d}.png"
-        if not p.is_file():
-            raise DatasetError(f"depth image {p} not found")
-        return p
+        """depth/{im_id:06d}.png, or .tif (ITODD's layout)."""
+        stem = self.path / "depth" / f"{self._check_id(im_id):06d}"
+        for ext in _DEPTH_EXTS:
+            if stem.with_suffix(ext).is_file():
+                return stem.with_suffix(ext)
+        raise DatasetError(f"depth image {stem.with_suffix('.png')} not found")
 
     def image_size(self, im_id: int) -> tuple[int, int]:
         """(width, height) of the frame, read from the image header."""
@@ -359,9 +362,17 @@ class BopScene:
         return np.ascontiguousarray(img[:, :, ::-1])
 
     def load_depth_raw(self, im_id: int) -> UInt16Array:
-        """(H, W) uint16 raw depth as stored; DatasetError unless a 16-bit single-channel PNG."""
+        """(H, W) uint16 raw depth as stored; DatasetError unless a 16-bit single-channel PNG (or TIFF, as ITODD)."""
         path = self.depth_path(im_id)
         header = _read_header(path)
+        if path.suffix == ".tif":
+            img = _imread(path)
+            if img.ndim != 2 or img.dtype != np.uint16:
+                raise DatasetError(
+                    f"{path} decodes as {img.dtype} {img.shape}; BOP depth must be 16-bit single-channel "
+                    "(raw units times depth_scale = mm)"
+                )
+            return np.asarray(img, dtype=np.uint16)
         if header.kind != "png":
             raise DatasetError(f"{path} is not a PNG file; BOP depth is a 16-bit single-channel PNG")
         if header.bit_depth != 16 or header.channels != 1:
