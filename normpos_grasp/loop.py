@@ -753,11 +753,13 @@ def _mesh_centre(mesh: Any, world_from_object: FloatArray) -> FloatArray:
 
 
 def plan_limits(cell: CellConfig, plan: PickPlan, limits: SafetyLimits) -> SafetyLimits:
-    """The limits that judge `plan`: `limits` (the cell's), or on a dual-tool flange the same cell's with the plan's
-    tool mounted (its TCP for the workspace box and the plan's tool check; the same caps)."""
+    """The limits that judge `plan`: `limits` (the cell's), or on a dual-tool flange `limits` with the plan's tool
+    mounted (its TCP for the workspace box and the plan's tool check); every cap and the box stay those given, so
+    limits tightened by the caller are never loosened here."""
     if len(cell.tools) == 1:
         return limits
-    return SafetyLimits.from_cell(cell.with_tool(cell.tool_named(plan.tool.name)[0]))
+    tool = cell.tool_named(plan.tool.name)[0]
+    return replace(limits, flange_from_tcp=np.array(tool.flange_from_tcp, dtype=np.float64))
 
 
 def tool_outputs_hook(cell: CellConfig, driver: Any) -> Callable[[PickPlan], None]:

@@ -178,3 +178,22 @@ def test_execute_refuses_a_trajectory_that_dips_under_the_table(cell_file: Path,
     plan["trajectory"] = {"samples": [{"t": float(a), "q": b.tolist()} for a, b in zip(t, q, strict=True)]}
     code, err = _execute(capsys, str(_write(tmp_path, plan)), "--execute")
     assert code == 2 and "trajectory" in err and "workspace" in err, err
+
+
+def test_a_dual_tool_plan_is_judged_with_its_tool_and_the_callers_caps() -> None:
+    """On a dual-tool flange the loop mounts the plan's tool (its TCP judges the workspace box) and keeps every cap
+    it was given: limits tightened by the caller are never replaced by the cell's."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from normpos_grasp.cell import resolve_cell
+    from normpos_grasp.loop import plan_limits
+
+    cell = resolve_cell("ur5e_bin_dual")
+    slow = replace(SafetyLimits.from_cell(cell), max_joint_speed=np.full(6, 0.5), max_joint_accel=np.full(6, 1.0))
+    for tool in cell.tools:
+        judged = plan_limits(cell, SimpleNamespace(tool=SimpleNamespace(name=tool.name)), slow)  # type: ignore[arg-type]
+        assert np.array_equal(judged.flange_from_tcp, tool.flange_from_tcp)
+        assert np.all(judged.max_joint_speed == 0.5) and np.all(judged.max_joint_accel == 1.0)
+        assert np.array_equal(judged.workspace_min, slow.workspace_min) and judged.cell == slow.cell
+    assert not np.array_equal(cell.tools[0].flange_from_tcp, cell.tools[1].flange_from_tcp)
