@@ -74,7 +74,8 @@ def main() -> None:
     lib = work / "lib"
     if args.taught is not None:
         lib = args.taught
-        names = sorted(p.name for p in lib.iterdir() if (p / "template.yaml").is_file())
+        taught = sorted(p.name for p in lib.iterdir() if (p / "template.yaml").is_file())
+        names = [n for n in names if n in taught] + [n for n in taught if n not in names]  # --parts order first
         print(f"1. teach: skipped, the parts {names} taught before in {lib}")
     else:
         print(f"1. teach ({load()} at start)")
