@@ -15,7 +15,7 @@ import trimesh
 from normpos_grasp.cell import resolve_cell
 from normpos_grasp.cell.config import cell_from_dict
 from normpos_grasp.collision.world import CollisionWorld
-from normpos_grasp.errors import CellConfigError, InputError
+from normpos_grasp.errors import CellConfigError, InputError, SafetyViolation
 from normpos_grasp.geometry import make_pose
 from normpos_grasp.io.yaml_safe import load_yaml_file
 from normpos_grasp.planning import plan_pick
@@ -186,7 +186,7 @@ def test_execution_switches_to_the_chosen_tools_outputs_and_a_real_controller_is
     resolve_cell("ur5e_bin_parallel").refuse_dual_tool("the controller")  # one tool: nothing to refuse
 
 
-@pytest.mark.slow  # 2-5 s alone at load 5-8 on 2 cores (the pipeline's imports and kernels load here)
+@pytest.mark.slow  # 1.6 s in this file at load 1.8, 7.7 s at load 8 (alone it also loads the pipeline)
 def test_the_dual_cell_clears_a_plate_in_simulate_with_the_chosen_tools_hand(monkeypatch: pytest.MonkeyPatch) -> None:
     """One plate in the bin, D435 noise at 320x240, ideal masks: planned with one of the two tools, replayed in
     physics with that tool's hand (jaws or cup, the idle body among its shapes), held, the bin cleared."""
@@ -210,3 +210,29 @@ def test_the_dual_cell_clears_a_plate_in_simulate_with_the_chosen_tools_hand(mon
     tool = next(t for t in DUAL.tools if t.kind == hands[0].kind)
     alone = episode.tool_spec(replace(tool, shapes=own_shapes(tool)))
     assert len(hands[0].body_shapes) > len(alone.body_shapes)  # with the idle tool's body
+
+
+def test_execute_judges_a_cup_plan_with_the_cups_tcp_and_refuses_a_real_controller(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    from normpos_grasp.cli.main import main
+
+    slab = Template("slab", "slab", trimesh.creation.box((0.15, 0.12, 0.02)), mass_kg=0.3, shape="box")
+    plan = plan_pick([_fit(slab, (0.5, 0.0, 0.02))], [], DUAL)
+    assert plan.tool.name == "suction_30"
+    path = tmp_path / "plan.json"
+    path.write_text(json.dumps(plan.to_json()))
+    # a real controller: one line, exit 2, nothing connected
+    assert main(["execute", str(path), "--cell", str(CELL_FILE), "--execute", "--robot", "10.0.0.2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot switch to the tool a plan chose" in err[0]
+    # judged with the cup's TCP mounted (the dry run passes); against the jaws' TCP the same plan is refused
+    assert main(["execute", str(path), "--cell", str(CELL_FILE), "--robot", "sim"]) == 0
+    assert "plan checked" in capsys.readouterr().out
+    from normpos_grasp.execution.plan import check_plan, parse_plan
+    from normpos_grasp.execution.safety import SafetyLimits
+
+    with pytest.raises(SafetyViolation, match="not the tool mounted"):
+        check_plan(parse_plan(plan.to_json()), SafetyLimits.from_cell(DUAL))
