@@ -11,7 +11,8 @@
    recall (eligible new-part objects matched one-to-one by an instance mask at IoU >= 0.5) and precision (of the
    instances whose mask overlaps a new part most, those matched to it at IoU >= 0.5); pose recall (the matched
    instance's accepted fit is the right template with ADD(-S) < 0.1 d) and wrong accepted fits (a new-part
-   template accepted on another object, or another template on a new part, or ADD(-S) >= 0.1 d).
+   template accepted on another object, or another template on a new part, or ADD(-S) >= 0.1 d); and the pose
+   recall of the eligible built-in objects in the same bins.
 3. Picks: `normpos-grasp simulate --library LIB --library builtin` on --sim-scenes bins of --sim-count parts drawn
    from the new parts (GT segmenter, the physics judge), share of picks held.
 
@@ -104,7 +105,7 @@ def main() -> None:
     kinds = [k.strip() for k in args.segmenters.split(",") if k.strip()]
     labels = {t.label for t in library}
     segs = {k: (None if k == "gt" else make_segmenter(k, labels=labels)) for k in kinds}
-    keys = ("eligible", "correct", "wrong", "accepted", "seg_found", "seg_inst", "seg_ok")
+    keys = ("eligible", "correct", "wrong", "accepted", "seg_found", "seg_inst", "seg_ok", "b_eligible", "b_correct")
     tally = {k: dict.fromkeys(keys, 0) for k in kinds}
     t0 = time.perf_counter()
     for i in range(args.scenes):
@@ -128,10 +129,16 @@ def main() -> None:
                 if best[j][0] >= 0 and templates[best[j][0]].name in names:
                     tl["seg_inst"] += 1
                     tl["seg_ok"] += int(j in matched)
+            tl["b_eligible"] += sum(int(eligible[k]) for k, t in enumerate(templates) if t.name not in names)
             for j, inst in enumerate(result.instances):
                 fit = fits.get(inst.instance_id)
                 part = matched.get(j, best[j][0])
                 truth = templates[part].name if part >= 0 else ""
+                built_in = j in matched and eligible[part] and truth not in names
+                if built_in and fit is not None and fit.accepted and fit.template.name == truth:
+                    est = _world(fit.frame_from_object, fit.frame, sf.frame.camera)
+                    good = pose_errors(templates[part], est, sf.world_from_object[part])[2] < 0.1 * diam[truth]
+                    tl["b_correct"] += int(good)
                 if fit is None or not fit.accepted or (truth not in names and fit.template.name not in names):
                     continue
                 tl["accepted"] += 1
@@ -157,7 +164,8 @@ def main() -> None:
             )
         print(
             f"  {kind}: {seg}new-part pose ADD(-S) recall {recall:.3f} ({tl['correct']}/{tl['eligible']} eligible), "
-            f"wrong accepted {tl['wrong']} of {tl['accepted']} accepted fits involving a new part"
+            f"wrong accepted {tl['wrong']} of {tl['accepted']} accepted fits involving a new part; built-in parts' "
+            f"pose recall {tl['b_correct'] / max(tl['b_eligible'], 1):.3f} ({tl['b_correct']}/{tl['b_eligible']})"
         )
     if args.sim_scenes <= 0:
         print(f"(library in {lib})")

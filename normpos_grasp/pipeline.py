@@ -18,7 +18,7 @@ from normpos_grasp.measure.measure import MeasureOptions, measure_instances
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.cad_detector import CadDetector, RegionOfInterest
 from normpos_grasp.perception.change import unchanged
-from normpos_grasp.perception.factory import for_library, make_segmenter
+from normpos_grasp.perception.factory import ClassAgnostic, for_library, make_segmenter
 from normpos_grasp.planning.plan import PlanOptions, plan_pick
 from normpos_grasp.records.instance import Instance
 from normpos_grasp.records.normpos import NormPosition
@@ -121,7 +121,8 @@ def perceive(
         found = list(instances)
     elif segmenter is not None:
         # a model that lacks some of the library's labels (taught parts): its masks class-agnostic, the fit names them
-        found = for_library(segmenter, {t.label for t in templates}).segment(frame)
+        segmenter = for_library(segmenter, {t.label for t in templates})
+        found = segmenter.segment(frame)
     else:
         raise InputError("perceive needs a segmenter or the frame's instances")
     timings["segment"] = _ms(t0)
@@ -131,11 +132,49 @@ def perceive(
     t0 = time.perf_counter()
     kept = _unchanged_fits(frame, found, previous, opts.reuse) if previous is not None else {}
     todo = [n for n in normpositions if n.instance_id not in kept]
-    fresh = iter(fit_many(todo, templates, opts.fit, FitContext(frame.camera, frame.depth_m), opts.fit_workers))
+    ctx = FitContext(frame.camera, frame.depth_m)
+    if instances is None and isinstance(segmenter, ClassAgnostic):
+        fresh = iter(_fit_hinted(todo, templates, segmenter, opts, ctx))
+    else:
+        fresh = iter(fit_many(todo, templates, opts.fit, ctx, opts.fit_workers))
     fits = [kept[n.instance_id] if n.instance_id in kept else next(fresh) for n in normpositions]
     fits = one_pose_per_object(fits, normpositions)  # fragments of one object: the best-explaining fit only
     timings["fit"] = _ms(t0)
     return FrameResult(frame, found, normpositions, fits, None, timings, len(normpositions) - len(todo))
+
+
+def _fit_hinted(
+    todo: Sequence[NormPosition],
+    templates: Sequence[Template],
+    segmenter: ClassAgnostic,
+    opts: PipelineOptions,
+    ctx: FitContext,
+) -> list[TemplateFit]:
+    """Fits of class-agnostic instances, in input order: each is fitted as the model's class (its hint) and against
+    the templates the model does not know (`ClassAgnostic.unknown`, label ''); the model's class is a prior: an
+    unknown template must be accepted and explain the points clearly better (the hinted fit below
+    `class_ambiguity_ratio` of its score) to overrule an accepted fit of the hinted class."""
+    unknown = segmenter.unknown(templates)
+    hinted = [replace(n, label=segmenter.hints.get(n.instance_id, "")) for n in todo]
+    first = fit_many([n for n in hinted if n.label], templates, opts.fit, ctx, opts.fit_workers)
+    by_hint = {f.instance_id: f for f in first}
+    second = fit_many(list(todo), unknown, opts.fit, ctx, opts.fit_workers) if unknown else []
+    by_unknown = {f.instance_id: f for f in second}
+    out = []
+    for n in todo:
+        h, u = by_hint.get(n.instance_id), by_unknown.get(n.instance_id)
+        if h is None or u is None:
+            fit = h if u is None else u
+        elif h.accepted and not (u.accepted and h.score < opts.fit.class_ambiguity_ratio * u.score):
+            fit = h
+        elif u.accepted or u.score > h.score:
+            fit = u
+        else:
+            fit = h
+        if fit is None:  # neither a hint nor unknown templates: the whole library competes
+            fit = fit_many([n], templates, opts.fit, ctx, 1)[0]
+        out.append(fit)
+    return out
 
 
 def _unchanged_fits(

@@ -117,8 +117,65 @@ def test_a_model_that_lacks_library_labels_gives_class_agnostic_masks() -> None:
     assert [i.label for i in found] == ["", ""] and [i.source_id for i in found] == [0, 1]
     assert agnostic.hints == {1: "plate", 2: "cube"}  # the model's class kept as a hint
     assert np.array_equal(found[0].mask, model.segment(None)[0].mask)
+    # what competes for every mask beside the hinted class: the parts the model does not know
+    from normpos_grasp.records.template import Template
+
+    lib = [Template(n, n, trimesh.creation.box((0.02, 0.03, 0.04))) for n in ("plate", "cube", "t_profile", "nut")]
+    assert [t.name for t in agnostic.unknown(lib)] == ["t_profile", "nut"]
     # the bundled model, for a library with a taught part: class-agnostic under 'model' ('auto' takes depth)
     choice = choose_segmenter("model", labels={"cube", "t_profile"})
     assert choice.kind == "model" and isinstance(choice.segmenter, ClassAgnostic)
     assert choose_segmenter("auto", labels={"cube", "t_profile"}).kind == "depth"
     assert not isinstance(choose_segmenter("model", labels={"cube"}).segmenter, ClassAgnostic)
+
+
+def test_the_models_class_is_a_prior_that_a_taught_part_must_clearly_beat(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`pipeline._fit_hinted`: the hinted class's fit stands unless a taught template is accepted and explains the
+    points clearly better (the hinted score below `class_ambiguity_ratio` of it); a rejected hinted fit yields."""
+    from dataclasses import dataclass
+
+    from normpos_grasp import pipeline
+    from normpos_grasp.perception.factory import ClassAgnostic
+    from normpos_grasp.records.template import Template, TemplateFit
+
+    box = Template("box", "box", trimesh.creation.box((0.05, 0.03, 0.02)))
+    tee = Template("t_profile", "t_profile", trimesh.creation.box((0.06, 0.03, 0.025)))
+    scores: dict[str, tuple[float, bool]] = {}
+
+    def fake_fit_many(nps, lib, *args, **kwargs):  # type: ignore[no-untyped-def]
+        out = []
+        for n in nps:
+            t = box if n.label == "box" else tee
+            assert n.label in ("box", "") and (n.label == "box" or [x.name for x in lib] == ["t_profile"])
+            score, ok = scores[t.name]
+            out.append(TemplateFit(t, np.eye(4), score, 0.001, 1.0, 1.0, 0.0, ok, instance_id=n.instance_id))
+        return out
+
+    monkeypatch.setattr(pipeline, "fit_many", fake_fit_many)
+
+    class Model:
+        class_names = ("box", "cube")
+
+    seg = ClassAgnostic(Model())  # type: ignore[arg-type]
+    seg.hints = {1: "box"}
+
+    @dataclass(frozen=True)
+    class N:
+        label: str
+        instance_id: int
+
+    npos = N("", 1)
+    opts = pipeline.PipelineOptions()
+
+    def winner() -> str:
+        (fit,) = pipeline._fit_hinted([npos], [box, tee], seg, opts, None)  # type: ignore[arg-type, list-item]
+        return fit.template.name
+
+    scores.update(box=(0.90, True), t_profile=(0.95, True))
+    assert winner() == "box"  # about as good: the model's class stands (a T-profile top looks like a box top)
+    scores.update(box=(0.60, True), t_profile=(0.95, True))
+    assert winner() == "t_profile"  # clearly better
+    scores.update(box=(0.95, False), t_profile=(0.70, True))
+    assert winner() == "t_profile"  # the hinted fit was rejected (a T-profile the model called 'box')
+    scores.update(box=(0.95, True), t_profile=(0.99, False))
+    assert winner() == "box"

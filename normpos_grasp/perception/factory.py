@@ -11,16 +11,18 @@ name until its figures reach its targets (docs/cad_detection.md).
 
 Parts the model was not trained on (a library with labels the model lacks, such as parts made with `teach`): the
 model's masks are used class-agnostically (`ClassAgnostic`, from `for_library`): each instance's label becomes ''
-(the model's class stays as a hint), so every library template whose size could explain the mask competes in the fit,
-the best verified fit names the part, and a second template that explains it about as well makes the fit ambiguous
-(rejected): no retraining for a new part (docs/segmentation.md says why this was chosen over a fine-tune). 'auto'
-still takes the depth segmenter for such a library: on bench_teach's bins its masks of taught parts are better.
+(the model's class stays as a hint), so the templates the model does not know compete for every mask beside the
+hinted class (`pipeline.perceive`: the hint is a prior, an unknown template must be accepted and clearly better to
+overrule it); the verified fit names the part, and a second unknown template that explains it about as well makes
+the fit ambiguous (rejected). No retraining for a new part (docs/segmentation.md says why this was chosen over a
+fine-tune). 'auto' still takes the depth segmenter for such a library: on bench_teach's bins its masks of taught
+parts are better.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Collection, Iterable
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -99,6 +101,11 @@ class ClassAgnostic:
         found = self.model.segment(frame)
         self.hints = {i.instance_id: i.label for i in found}
         return [replace(i, label="") for i in found]
+
+    def unknown(self, templates: Sequence[Template]) -> list[Template]:
+        """The templates whose label the model lacks (taught parts): they compete for every mask."""
+        known = set(getattr(self.model, "class_names", ()))
+        return [t for t in templates if t.label not in known]
 
 
 def for_library(segmenter: Segmenter, labels: Collection[str]) -> Segmenter:
