@@ -60,6 +60,27 @@ def test_cluster_poses_merges_symmetric_copies() -> None:
     assert len(apart) == 2
 
 
+def test_nms_per_place_cap_keeps_a_second_place() -> None:
+    # five distinct turns at one place outscore the single pose at another: without a per-place cap the budget of
+    # three goes to the first place only (a big surface many wrong poses fit hides a small part's right pose)
+    centroid = np.zeros(3)
+    poses = []
+    for k in range(5):
+        p = np.eye(4)
+        p[:3, :3] = Rotation.from_euler("z", 40 * k, degrees=True).as_matrix()
+        p[:3, 3] = [0.0, 0.0, 0.6]
+        poses.append(p)
+    other = np.eye(4)
+    other[:3, 3] = [0.1, 0.0, 0.6]
+    poses.append(other)
+    scores = np.array([10.0, 9.0, 8.0, 7.0, 6.0, 5.0])
+    plain, _ = ppf.nms_poses(np.stack(poses), scores, centroid, 0.005, np.deg2rad(15), 3)
+    capped, cs = ppf.nms_poses(np.stack(poses), scores, centroid, 0.005, np.deg2rad(15), 3, None, 2, 0.03)
+    assert not any(np.allclose(q, other) for q in plain)
+    assert any(np.allclose(q, other) for q in capped)
+    assert list(cs) == [10.0, 9.0, 5.0]  # two at the first place, then the second place
+
+
 @pytest.fixture(scope="module")
 def scene():  # type: ignore[no-untyped-def]
     from normpos_grasp.sim.cameras import CameraOptions

@@ -92,6 +92,14 @@ class CadOptions:
     ref_every: every ref_every-th downsampled ROI point is a PPF reference point; n_peaks: accumulator peaks kept
         per reference point; hypotheses: clustered hypotheses per template and round.
     pull_in: voted poses per template and round pulled in by ICP.
+    refine_peaks: in the depth ranking, this many distinct raw peaks (best depth score first, at most 2 x place_cap
+        per place) are refined together (`_refine_batch`: 5 ICP iterations on every second scene point) and scored
+        again before the ranking (0: the raw peaks are ranked); place_cap / place_share: at most place_cap ranked
+        poses whose centroids lie within place_share x the diameter of each other (0: no cap), so one place of the
+        pile (a large surface many wrong poses fit) does not take the whole budget; cluster_max: only the best-voted
+        raw peaks go into the vote clustering (its time). With ref_every 2 and n_peaks 4 (raw peaks holding a right
+        pose for 24 of bench_cad's 29 seed-2 targets, against 17 with 5 and 2) they took that seed from recall 0.62 /
+        precision 0.82 to 0.72 / 0.88 and the unseen seed 5 from 0.47 / 0.70 to 0.53 / 0.80 at the same CPU time.
     ranking: 'both': besides the vote clusters explaining the most downsampled points (`ppf.cluster_poses`, the
         first cut), every raw vote peak is scored on the depth image (`ppf.depth_scores`: the template's visible
         points supported by depth inside the residual ROI, minus those supported outside it, minus 3 x those seen
@@ -146,10 +154,14 @@ class CadOptions:
     thin_above_m: float = 0.002
     thin_window_px: int = 15
     wall_margin_m: float = 0.003
-    ref_every: int = 5
-    n_peaks: int = 2
+    ref_every: int = 2
+    n_peaks: int = 4
     hypotheses: int = 24
     pull_in: int = 10
+    refine_peaks: int = 48
+    place_cap: int = 2
+    place_share: float = 0.3
+    cluster_max: int = 3000
     ranking: str = "both"
     min_rank_share: float = 0.3
     icp_iterations: int = 8
@@ -452,9 +464,11 @@ class CadDetector:
             if len(poses) == 0:
                 continue
             # the vote clusters explaining the most downsampled points (the first cut's hypotheses) ...
+            best = np.argsort(-votes, kind="stable")[: opts.cluster_max]
             cp, cv = ppf.cluster_poses(
-                poses, votes, prep.centroid, 0.1 * prep.diameter, np.deg2rad(15.0), opts.hypotheses, prep.sym
-            )
+                poses[best], votes[best], prep.centroid, 0.1 * prep.diameter, np.deg2rad(15.0), opts.hypotheses,
+                prep.sym,
+            )  # fmt: skip
             keep = _prescore(prep, cp, sp, opts.explain_tol_m, opts.noise_per_m2, opts.pull_in)
             if opts.ranking != "votes":
                 # ... and every raw peak judged on the depth image (compiled, on the model points): on a pile the
@@ -464,9 +478,26 @@ class CadDetector:
                 sc = ppf.depth_scores(
                     model, poses, self._depth, region, self._camera_k, opts.explain_tol_m, opts.noise_per_m2
                 )
+                # one place of the pile (a big surface many wrong poses fit) must not take the whole budget; the
+                # right raw peak of a part is quantised (12-degree alpha bins, voxel normals) and often scores below
+                # wrong poses at its place until it is pulled in, so the best distinct peaks are first refined
+                # together (one compiled ICP batch) and ranked again
+                d, cap = prep.diameter, opts.place_cap
+                if opts.refine_peaks > 0:
+                    rp, _ = ppf.nms_poses(
+                        poses, sc, prep.centroid, 0.1 * d, np.deg2rad(15.0), opts.refine_peaks, prep.sym,
+                        2 * cap, opts.place_share * d,
+                    )  # fmt: skip
+                    poses_r = self._refine_batch(prep, rp, sp[::2], sn[::2])
+                    sc = ppf.depth_scores(
+                        model, poses_r, self._depth, region, self._camera_k, opts.explain_tol_m, opts.noise_per_m2
+                    )
+                else:
+                    poses_r = poses
                 dp, dv = ppf.nms_poses(
-                    poses, sc, prep.centroid, 0.1 * prep.diameter, np.deg2rad(15.0), opts.hypotheses, prep.sym
-                )
+                    poses_r, sc, prep.centroid, 0.1 * d, np.deg2rad(15.0), opts.hypotheses, prep.sym,
+                    cap, opts.place_share * d,
+                )  # fmt: skip
                 top = np.flatnonzero(dv >= opts.min_rank_share * dv[0])[: opts.pull_in] if len(dv) else np.zeros(0, int)
                 both = np.concatenate([cp[keep], dp[top]]) if opts.ranking == "both" else dp[top]
                 rank = np.arange(len(both), 0, -1, dtype=np.float64)  # clusters first, then the depth ranking
@@ -480,6 +511,28 @@ class CadDetector:
                 self.trace.append(("pull_in", t.name, _stack([hy.camera_from_object for hy in pulled])))
             out.extend(pulled)
         return out
+
+    def _refine_batch(self, prep: PreparedTemplate, poses: FloatArray, sp: FloatArray, sn: FloatArray) -> FloatArray:
+        """(K, 4, 4) camera_from_object poses pulled in together by 5 ICP iterations on the scene cloud (sp, sn: (N,
+        3) points and normals, metres; one compiled batch, correspondences gated from 0.1 diameter down)."""
+        opts = self.options
+        if len(poses) == 0:
+            return poses
+        thr = np.maximum(opts.explain_tol_m, 2.5 * opts.noise_per_m2 * sp[:, 2] ** 2)
+        ofc, _, _ = icp(
+            prep,
+            np.asarray(np.linalg.inv(poses), dtype=np.float64),
+            np.ones(len(poses)),
+            sp,
+            sn,
+            thr,
+            iterations=5,
+            exact=False,
+            fit_scale=False,
+            scale_tolerance=0.0,
+            max_corr_start=0.1 * prep.diameter,
+        )
+        return np.asarray(np.linalg.inv(ofc), dtype=np.float64)
 
     def _pull_in(
         self,

@@ -479,10 +479,14 @@ def nms_poses(
     angle_rad: float,
     n_max: int,
     symmetries: FloatArray | None = None,
+    per_place: int = 0,
+    place_m: float = 0.0,
 ) -> tuple[FloatArray, FloatArray]:
     """Greedy non-maximum suppression, best score first: a pose is dropped when a kept one has its posed `centroid`
-    within `dist_m` and its rotation within `angle_rad` (up to `symmetries`, (M, 4, 4)). Returns the `n_max` best
-    (K, 4, 4) poses and their (K,) scores (scores <= 0 are not kept)."""
+    within `dist_m` and its rotation within `angle_rad` (up to `symmetries`, (M, 4, 4)), or, with `per_place` > 0,
+    when `per_place` kept ones have their centroids within `place_m` of its (whatever their rotation: one place of
+    the scene does not take the whole budget). Returns the `n_max` best (K, 4, 4) poses and their (K,) scores
+    (scores <= 0 are not kept)."""
     order = np.argsort(-scores, kind="stable")
     order = order[scores[order] > 0]
     if len(order) == 0:
@@ -496,7 +500,10 @@ def nms_poses(
     for i in range(len(p)):
         if kept:
             kk = np.asarray(kept)
-            near = np.linalg.norm(centres[kk] - centres[i], axis=1) < dist_m
+            dc = np.linalg.norm(centres[kk] - centres[i], axis=1)
+            if per_place > 0 and int(np.count_nonzero(dc < place_m)) >= per_place:
+                continue
+            near = dc < dist_m
             if near.any():
                 equiv = (p[i, :3, :3] @ sym_r).reshape(-1, 9)
                 if np.any(np.max(rot[kk[near]] @ equiv.T, axis=1) > cos_lim):
