@@ -477,7 +477,7 @@ def _fit_candidates(
         )
 
     poses, scales, frac = coarse(poses, np.ones(len(poses)), opts.coarse_keep)
-    keep = _distinct(poses, _coarse_rank(prep, poses, scales, frac, meas), prep, opts.n_refine)
+    keep = _distinct(poses, frac, prep, opts.n_refine)
     cff = ctx.camera_from_frame(normpos.frame) if ctx is not None else None
     out, ref_poses, ref_scales = _refine(prep, poses[keep], scales[keep], meas, opts, ctx, cff, [], floor)
     if opts.n_flip_variants > 0 and len(ref_poses):
@@ -495,8 +495,7 @@ def _fit_candidates(
             turn[:3, 3] = centre - rv @ centre
             variants.append(turn @ best)
         vp, vs, vf = coarse(np.array(variants), np.full(len(variants), ref_scales[0]), opts.flip_keep)
-        vr = _coarse_rank(prep, vp, vs, vf, meas)
-        pick = [i for i in _distinct(vp, vr, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
+        pick = [i for i in _distinct(vp, vf, prep, opts.n_flip_variants + 2) if not _near(vp[i], best, prep)]
         pick = pick[: opts.n_flip_variants]
         if pick:
             out, _, _ = _refine(prep, vp[pick], vs[pick], meas, opts, ctx, cff, out, floor)
@@ -507,28 +506,6 @@ def _fit_candidates(
 
 
 _NEAR_COS = float(np.cos(np.deg2rad(8)))
-
-
-def _coarse_rank(
-    prep: PreparedTemplate, poses: FloatArray, scales: FloatArray, frac: FloatArray, meas: _Measured
-) -> FloatArray:
-    """(H,) ranking of coarse poses for refinement: the score bound (`score_bounds`: inliers, RMSE, consistency)
-    on the score points, ties broken by the coarse inlier fraction. The coarse fraction alone saturates on small
-    parts (a 2.5 sigma inlier distance of 7 mm at 0.9 m is a fifth of a 34 mm bushing: an upside-down pose also
-    scores 1.0 and took the refinement slots from the right one)."""
-    if len(poses) == 0:
-        return frac
-    bound, _, _ = score_bounds(
-        prep,
-        poses,
-        scales,
-        meas.pts_score,
-        meas.nrm_score,
-        meas.thr_score,
-        meas.neighbours_score,
-        thr_median=meas.thr_score_median,
-    )
-    return np.asarray(bound + 1e-3 * frac, dtype=np.float64)
 
 
 def _near(a: FloatArray, b: FloatArray, prep: PreparedTemplate) -> bool:
