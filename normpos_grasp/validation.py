@@ -8,6 +8,12 @@ from normpos_grasp.errors import InputError
 from normpos_grasp.typing import ArrayLike, FloatArray
 
 
+def short_repr(value: object, limit: int = 60) -> str:
+    """repr(value) cut to `limit` characters (with '...'): a bad value quoted in a one-line error."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def as_float_array(value: ArrayLike, name: str, shape: tuple[int | None, ...]) -> FloatArray:
     """Return `value` as a new float64 array of `shape` (None matches any length); all finite.
 

@@ -25,6 +25,7 @@ from normpos_grasp.kinematics.gripper import Gripper
 from normpos_grasp.kinematics.ur_params import JOINT_NAMES, UR_PARAMS
 from normpos_grasp.records.tool import ToolModel, parallel_gripper, suction_tool, tool_from_gripper, with_idle
 from normpos_grasp.typing import FloatArray
+from normpos_grasp.validation import short_repr
 
 from .gripper_driver import GripperDriverSpec, parse_gripper_driver
 from .places import pattern_slots
@@ -471,7 +472,7 @@ def _join(path: str, key: str) -> str:
 def _mapping(v: Any, path: str, allowed: Iterable[str], what: str = "a mapping") -> dict[str, Any]:
     """`v` as a mapping whose keys are all in `allowed`; an unknown key is an error naming its full path."""
     if not isinstance(v, dict):
-        raise _err(path, f"expected {what}, got {type(v).__name__} {_short(v)}")
+        raise _err(path, f"expected {what}, got {type(v).__name__} {short_repr(v)}")
     names = tuple(allowed)
     for key in v:
         if not isinstance(key, str):
@@ -483,11 +484,6 @@ def _mapping(v: Any, path: str, allowed: Iterable[str], what: str = "a mapping")
     return v
 
 
-def _short(v: Any) -> str:
-    text = repr(v)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def _req(d: dict[str, Any], key: str, path: str) -> Any:
     if key not in d:
         raise _err(_join(path, key), "required key is missing")
@@ -496,7 +492,7 @@ def _req(d: dict[str, Any], key: str, path: str) -> Any:
 
 def _text(v: Any, path: str, max_len: int = MAX_TEXT) -> str:
     if not isinstance(v, str) or not v.strip():
-        raise _err(path, f"expected non-empty text, got {type(v).__name__} {_short(v)}")
+        raise _err(path, f"expected non-empty text, got {type(v).__name__} {short_repr(v)}")
     if len(v) > max_len or any(ord(c) < 32 for c in v):
         raise _err(path, f"expected one line of at most {max_len} characters, got {len(v)} characters")
     return v
@@ -513,7 +509,7 @@ def _num(v: Any, path: str, lo: float = -np.inf, hi: float = np.inf, unit: str =
                 hint = " (YAML reads an exponent without a dot, such as 1e3, as text: write 1.0e3)"
             except ValueError:
                 pass
-        raise _err(path, f"expected a number{u}, got {type(v).__name__} {_short(v)}{hint}")
+        raise _err(path, f"expected a number{u}, got {type(v).__name__} {short_repr(v)}{hint}")
     f = float(v)
     if not np.isfinite(f):
         raise _err(path, f"expected a finite number{u}, got {v!r}")
@@ -534,7 +530,7 @@ def _length(v: Any, path: str, lo: float = -MAX_EXTENT_M, hi: float = MAX_EXTENT
 
 def _list(v: Any, path: str, n: int) -> list[Any]:
     if not isinstance(v, list) or len(v) != n:
-        raise _err(path, f"expected a list of {n} numbers, got {_short(v)}")
+        raise _err(path, f"expected a list of {n} numbers, got {short_repr(v)}")
     return v
 
 
@@ -585,7 +581,7 @@ def parse_pose(v: Any, path: str) -> FloatArray:
         except InputError as exc:
             raise _err(path, str(exc)) from exc
         return pose
-    raise _err(path, f"expected a pose ({{xyz: [..], rpy_deg: [..]}} or a 4x4 list), got {_short(v)}")
+    raise _err(path, f"expected a pose ({{xyz: [..], rpy_deg: [..]}} or a 4x4 list), got {short_repr(v)}")
 
 
 def _box(v: Any, path: str, name: str, keys: tuple[str, ...] = _BOX_KEYS) -> BoxSpec:
@@ -607,10 +603,10 @@ def _payload(v: Any, path: str, robot: str) -> float:
 
 def _tool(v: Any, path: str, robot: str) -> ToolModel:
     if not isinstance(v, dict):
-        raise _err(path, f"expected a mapping, got {_short(v)}")
+        raise _err(path, f"expected a mapping, got {short_repr(v)}")
     kind = v.get("kind")
     if kind is not None and kind not in ("parallel", "suction"):
-        raise _err(f"{path}.kind", f"expected 'parallel' or 'suction', got {_short(kind)}")
+        raise _err(f"{path}.kind", f"expected 'parallel' or 'suction', got {short_repr(kind)}")
     if "flange_to_tcp_m" not in v:
         # a packaged gripper (kinematics.Gripper), optionally mounted through an adapter
         extra = sorted(set(v) - set(_PACKAGED_GRIPPER_KEYS))
@@ -765,11 +761,12 @@ def _bin(v: Any, path: str, name: str) -> BinSpec:
     if isinstance(places, str):
         places = [places]
     if not isinstance(places, list) or not places and "place" in b:
-        raise _err(_join(path, "place"), f"expected a place name or a non-empty list of them, got {_short(places)}")
+        raise _err(_join(path, "place"), f"expected a place name or a non-empty list of them, got {short_repr(places)}")
     capture = b.get("capture")
     if capture is not None and (isinstance(capture, bool) or not isinstance(capture, int) or capture < 0):
         raise _err(
-            _join(path, "capture"), f"expected the index of a camera.capture pose (0, 1, ...), got {_short(capture)}"
+            _join(path, "capture"),
+            f"expected the index of a camera.capture pose (0, 1, ...), got {short_repr(capture)}",
         )
     return BinSpec(
         parse_pose(_req(b, "pose", path), _join(path, "pose")),
@@ -793,7 +790,7 @@ def _bins(data: dict[str, Any]) -> list[BinSpec]:
     raw = data["bins"]
     if not isinstance(raw, list) or not 1 <= len(raw) <= MAX_BINS:
         raise _err(
-            "bins", f"expected a list of 1 to {MAX_BINS} bins {{name, pose, inner_size, ...}}, got {_short(raw)}"
+            "bins", f"expected a list of 1 to {MAX_BINS} bins {{name, pose, inner_size, ...}}, got {short_repr(raw)}"
         )
     bins = []
     for i, v in enumerate(raw):
@@ -846,7 +843,7 @@ def _watch(v: Any, base_dir: str | Path) -> WatchSpec:
     d = _mapping(v, "watch", _WATCH_KEYS)
     raw = d.get("zones", [])
     if not isinstance(raw, list):
-        raise _err("watch.zones", f"expected a list of boxes {{name, min, max}}, got {_short(raw)}")
+        raise _err("watch.zones", f"expected a list of boxes {{name, min, max}}, got {short_repr(raw)}")
     zones = []
     for i, z in enumerate(raw):
         zd = _mapping(z, f"watch.zones[{i}]", _ZONE_KEYS)
@@ -863,10 +860,10 @@ def _watch(v: Any, base_dir: str | Path) -> WatchSpec:
         raise _err("watch", "nothing to watch: give zones or an arm_margin_m above 0")
     stop = d.get("stop", "stop")
     if stop not in WATCH_STOP_KINDS:
-        raise _err("watch.stop", f"expected one of {', '.join(WATCH_STOP_KINDS)}, got {_short(stop)}")
+        raise _err("watch.stop", f"expected one of {', '.join(WATCH_STOP_KINDS)}, got {short_repr(stop)}")
     ack = d.get("require_ack", False)
     if not isinstance(ack, bool):
-        raise _err("watch.require_ack", f"expected true or false, got {_short(ack)}")
+        raise _err("watch.require_ack", f"expected true or false, got {short_repr(ack)}")
     blob = _num(d.get("min_blob_px", 12), "watch.min_blob_px", 1, 10_000, "px")
     down = _num(d.get("downsample", 2), "watch.downsample", 1, 8)
     for key, value in (("min_blob_px", blob), ("downsample", down)):
@@ -973,7 +970,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     serial = robot.get("serial_number")
     if serial is not None:
         if isinstance(serial, bool) or not isinstance(serial, str | int):
-            raise _err("robot.serial_number", f"expected text, got {type(serial).__name__} {_short(serial)}")
+            raise _err("robot.serial_number", f"expected text, got {type(serial).__name__} {short_repr(serial)}")
         serial = _text(str(serial), "robot.serial_number")
     floor_z = None if "floor_z" not in data else _length(data["floor_z"], "floor_z")
     world_from_base = parse_pose(robot.get("world_from_base", {"xyz": [0, 0, 0]}), "robot.world_from_base")
@@ -997,7 +994,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         boxes.append(_box(data["conveyor"], "conveyor", "conveyor"))
     fixtures = data.get("fixtures", [])
     if not isinstance(fixtures, list):
-        raise _err("fixtures", f"expected a list, got {_short(fixtures)}")
+        raise _err("fixtures", f"expected a list, got {short_repr(fixtures)}")
     for i, f in enumerate(fixtures):
         boxes.append(_box(f, f"fixtures[{i}]", f"fixture_{i}", _FIXTURE_KEYS))
     names = [b.name for b in boxes]
@@ -1009,7 +1006,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
     wrist = None
     mount = data["camera"].get("mount", "fixed") if isinstance(data.get("camera"), dict) else "fixed"
     if mount not in CAMERA_MOUNTS:
-        raise _err("camera.mount", f"expected one of {', '.join(CAMERA_MOUNTS)}, got {_short(mount)}")
+        raise _err("camera.mount", f"expected one of {', '.join(CAMERA_MOUNTS)}, got {short_repr(mount)}")
     if mount == "wrist":
         if len(tools) > 1:
             raise _err("gripper", "a wrist camera with two tools on the flange is not supported: give one gripper")
@@ -1026,7 +1023,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         camera = _mapping(data["camera"], "camera", _CAMERA_KEYS)
         from_scene = camera.get("from_scene", False)
         if not isinstance(from_scene, bool):
-            raise _err("camera.from_scene", f"expected true or false, got {_short(from_scene)}")
+            raise _err("camera.from_scene", f"expected true or false, got {short_repr(from_scene)}")
         if "world_from_camera" in camera and from_scene:
             raise _err("camera", "give world_from_camera or from_scene: true, not both")
         if "world_from_camera" in camera:
@@ -1054,7 +1051,7 @@ def cell_from_dict(data: Any, base_dir: str | Path = ".", source: Path | None = 
         approach = _length(pd.get("approach_m", 0.1), f"place[{i}].approach_m", 0.0, 1.0)
         align = pd.get("align_part", False)
         if not isinstance(align, bool):
-            raise _err(f"place[{i}].align_part", f"expected true or false, got {_short(align)}")
+            raise _err(f"place[{i}].align_part", f"expected true or false, got {short_repr(align)}")
         slots = (
             pattern_slots(pd["pattern"], f"place[{i}].pattern", pose, place_name)
             if "pattern" in pd
@@ -1115,7 +1112,8 @@ def _tools(v: Any, robot: str) -> tuple[list[ToolModel], tuple[GripperDriverSpec
         return [tool], (driver,)
     if not isinstance(v, list) or not 1 <= len(v) <= MAX_TOOLS:
         raise _err(
-            "gripper", f"expected a mapping or a list of 1-{MAX_TOOLS} mappings (tools on one flange), got {_short(v)}"
+            "gripper",
+            f"expected a mapping or a list of 1-{MAX_TOOLS} mappings (tools on one flange), got {short_repr(v)}",
         )
     tools: list[ToolModel] = []
     drivers: list[GripperDriverSpec | None] = []

@@ -21,7 +21,7 @@ import numpy as np
 from normpos_grasp.errors import DriverFault, InputError, SafetyViolation
 from normpos_grasp.records.plan import PLAN_FORMAT
 from normpos_grasp.typing import FloatArray
-from normpos_grasp.validation import as_float_array, check_pose
+from normpos_grasp.validation import as_float_array, check_pose, short_repr
 
 from .driver import ArmDriver, GuardedDriver
 from .gripper_config import ArmIOGripper, ToolDriver, arm_watch
@@ -121,7 +121,7 @@ def parse_plan(plan: dict[str, Any]) -> ParsedPlan:
     fmt = plan.get("format")
     if fmt is not None and fmt != PLAN_FORMAT:
         raise InputError(
-            f"plan.format: {_short(fmt)} is not this version's plan format {PLAN_FORMAT!r}; re-plan with "
+            f"plan.format: {short_repr(fmt)} is not this version's plan format {PLAN_FORMAT!r}; re-plan with "
             "`normpos-grasp plan`"
         )
     status = plan.get("status")
@@ -163,7 +163,7 @@ def parse_plan(plan: dict[str, Any]) -> ParsedPlan:
         traj_q = as_float_array(q_raw, "plan.trajectory.q", (traj_t.shape[0], 6))
     tool = plan.get("tool") or {}
     if not isinstance(tool, dict):
-        raise InputError(f"plan.tool: expected a mapping, got {_short(tool)}")
+        raise InputError(f"plan.tool: expected a mapping, got {short_repr(tool)}")
     for key in ("opening_m", "stroke_m"):
         if key in tool:
             _metres(tool[key], f"plan.tool.{key}")
@@ -226,15 +226,10 @@ def _split_trajectory(parsed: ParsedPlan) -> list[tuple[FloatArray, FloatArray]]
     return [(parsed.traj_t[a : b + 1], parsed.traj_q[a : b + 1]) for a, b in zip(idx[:-1], idx[1:], strict=True)]
 
 
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def _metres(value: Any, what: str) -> float:
     """A jaw opening or stroke in [0, 2) m; InputError naming `what` otherwise (NaN, inf, text, negative)."""
     if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= float(value) < 2.0:
-        raise InputError(f"{what}: expected a length in metres in [0, 2), got {_short(value)}")
+        raise InputError(f"{what}: expected a length in metres in [0, 2), got {short_repr(value)}")
     return float(value)
 
 

@@ -37,6 +37,7 @@ from normpos_grasp.io.yaml_safe import load_yaml_file
 from normpos_grasp.records.template import SHAPE_CLASSES, GraspAnnotation, Symmetry, Template
 from normpos_grasp.templates.mesh_check import MeshReport, check_mesh
 from normpos_grasp.typing import FloatArray
+from normpos_grasp.validation import short_repr
 
 logger = logging.getLogger(__name__)
 
@@ -240,16 +241,18 @@ def load_template(folder: str | Path, *, repair: bool = True) -> Template:
         raise TemplateError(f"{where}: shape must be one of {SHAPE_CLASSES}, got '{shape}'")
     control_spec = spec.get("control_points") or {}
     if not isinstance(control_spec, dict):
-        raise TemplateError(f"{where}: control_points: expected a mapping name: [x, y, z], got {_short(control_spec)}")
+        raise TemplateError(
+            f"{where}: control_points: expected a mapping name: [x, y, z], got {short_repr(control_spec)}"
+        )
     control = {str(k): _vec(v, f"{where}: control_points.{k}") * scale for k, v in control_spec.items()}
     symmetry_spec = spec.get("symmetry") or {}
     if not isinstance(symmetry_spec, dict):
-        raise TemplateError(f"{where}: symmetry: expected a mapping, got {_short(symmetry_spec)}")
+        raise TemplateError(f"{where}: symmetry: expected a mapping, got {short_repr(symmetry_spec)}")
     _check_keys(symmetry_spec, ("continuous", "discrete", "generators"), where, "symmetry.")
     symmetry = _parse_symmetry(symmetry_spec, scale, where)
     grasp_specs = spec.get("grasps") or []
     if not isinstance(grasp_specs, list):
-        raise TemplateError(f"{where}: grasps: expected a list, got {_short(grasp_specs)}")
+        raise TemplateError(f"{where}: grasps: expected a list, got {short_repr(grasp_specs)}")
     grasps = tuple(_parse_grasp(g, scale, f"{where}: grasps[{i}]") for i, g in enumerate(grasp_specs))
     ids = [g.id for g in grasps]
     if len(set(ids)) != len(ids):
@@ -259,7 +262,9 @@ def load_template(folder: str | Path, *, repair: bool = True) -> Template:
         raise TemplateError(f"{where}: mass_kg must be positive, got {mass}")
     obj_id = spec.get("obj_id", -1)
     if isinstance(obj_id, bool) or not isinstance(obj_id, int) or not (obj_id >= 1 or obj_id == -1):
-        raise TemplateError(f"{where}: obj_id: expected a whole number >= 1 (a BOP object id), got {_short(obj_id)}")
+        raise TemplateError(
+            f"{where}: obj_id: expected a whole number >= 1 (a BOP object id), got {short_repr(obj_id)}"
+        )
     _check_placement(mesh, control, grasps, where)
     _check_symmetry_on_mesh(mesh, symmetry, where)
     return Template(
@@ -290,11 +295,6 @@ GRASP_KEYS = (
 )  # fmt: skip
 
 
-def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def _check_keys(spec: dict[str, Any], allowed: Sequence[str], where: str, prefix: str) -> None:
     """TemplateError for a key the format does not have (a typo would otherwise be ignored silently)."""
     import difflib
@@ -308,13 +308,13 @@ def _check_keys(spec: dict[str, Any], allowed: Sequence[str], where: str, prefix
 
 def _text(value: Any, where: str) -> str:
     if not isinstance(value, str | int) or isinstance(value, bool) or not str(value).strip():
-        raise TemplateError(f"{where}: expected non-empty text, got {_short(value)}")
+        raise TemplateError(f"{where}: expected non-empty text, got {short_repr(value)}")
     return str(value)
 
 
 def _number(value: Any, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(float(value)):
-        raise TemplateError(f"{where}: expected a finite number, got {_short(value)}")
+        raise TemplateError(f"{where}: expected a finite number, got {short_repr(value)}")
     return float(value)
 
 
@@ -508,7 +508,7 @@ def _parse_symmetry(spec: dict[str, Any], scale: float, where: str) -> Symmetry:
     for key in ("continuous", "discrete", "generators"):
         entries = spec.get(key) or []
         if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-            raise TemplateError(f"{where}: symmetry.{key}: expected a list of mappings, got {_short(entries)}")
+            raise TemplateError(f"{where}: symmetry.{key}: expected a list of mappings, got {short_repr(entries)}")
     for i, c in enumerate(spec.get("continuous") or []):
         axis = _vec(c.get("axis"), f"{where}: symmetry.continuous[{i}].axis")
         if np.linalg.norm(axis) < 1e-9:
@@ -535,7 +535,7 @@ def _parse_rotation(d: dict[str, Any], scale: float, where: str) -> FloatArray:
         try:
             t = np.asarray(d["matrix"], dtype=np.float64)
         except (TypeError, ValueError):
-            raise TemplateError(f"{where}: matrix must be 4x4 numbers, got {_short(d['matrix'])}") from None
+            raise TemplateError(f"{where}: matrix must be 4x4 numbers, got {short_repr(d['matrix'])}") from None
         if t.shape != (4, 4) or not np.all(np.isfinite(t)):
             raise TemplateError(f"{where}: matrix must be 4x4 finite numbers")
         t = t.copy()
@@ -602,7 +602,7 @@ def _parse_grasp(g: dict[str, Any], scale: float, where: str) -> GraspAnnotation
         try:
             pose = np.asarray(g["matrix"], dtype=np.float64).reshape(4, 4).copy()
         except (TypeError, ValueError):
-            raise TemplateError(f"{where}.matrix: expected 4x4 numbers, got {_short(g['matrix'])}") from None
+            raise TemplateError(f"{where}.matrix: expected 4x4 numbers, got {short_repr(g['matrix'])}") from None
         rot = pose[:3, :3]
         if (
             not np.all(np.isfinite(pose))
