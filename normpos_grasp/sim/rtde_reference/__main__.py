@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -27,6 +28,14 @@ def main(argv: list[str] | None = None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})  # a mask inherited from the parent
+    if args.rt_priority > 1:
+        # every thread of this process (socket servers, script runner) real-time one step below the cycle, as on a
+        # controller's own computer: a server thread holding a lock or the GIL must not be starved by the host's
+        # other work and hold the 500 Hz cycle (and its state stream) off with it; threads inherit this policy
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(args.rt_priority - 1))
+        except (OSError, AttributeError) as exc:
+            logging.getLogger(__name__).warning("no real-time scheduling for the server threads (%s)", exc)
     try:
         ctl = ReferenceController(
             Settings(args.model, args.host, args.serial, args.unlock_delay, rt_priority=args.rt_priority)
