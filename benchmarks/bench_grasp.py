@@ -8,12 +8,21 @@ plan against the ground truth (trimesh manager + the kinematics stage's own FK a
 largest waypoint FK error.
 
     .venv/bin/python benchmarks/bench_grasp.py --scenes 40 --repeats 3
+
+`--digest PATH` writes, per scene, the plan's status, rejection counts, the chosen candidate (target, grasp pose)
+and the waypoints' joints (rounded to 1e-9) as JSON, to compare two versions of the planner on the same bins
+(`--compare PATH` reads such a file and prints the scenes whose plan differs). `--profile N` runs the timed plans
+under cProfile and prints the N functions with the most own time (timings under the profiler are not comparable).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import hashlib
+import json
 import os
+import pstats
 import time
 from collections import Counter, defaultdict
 from dataclasses import replace
@@ -135,6 +144,24 @@ def independent_check(plan, cell: CellConfig, layout, gripper_name: str) -> list
     return problems
 
 
+def _sha(a: np.ndarray, decimals: int) -> str:
+    return hashlib.sha1(np.round(a, decimals).tobytes()).hexdigest()[:16]
+
+
+def plan_digest(plan) -> dict[str, object]:  # type: ignore[no-untyped-def]
+    """Status, counts, chosen grasp and waypoint joints of one plan, rounded so that equal plans compare equal."""
+    chosen = plan.chosen
+    return {
+        "status": plan.status,
+        "counts": dict(sorted(plan.counts.items())),
+        "target": None if chosen is None else int(chosen.candidate.target),
+        "grasp": None if chosen is None else np.round(chosen.candidate.world_from_tcp, 9).tolist(),
+        "waypoints": [[w.name, np.round(w.q, 9).tolist()] for w in plan.waypoints],
+        "trajectory": None if plan.trajectory is None else _sha(plan.trajectory.q, 9) + _sha(plan.trajectory.t, 6),
+        "verdicts": hashlib.sha1("|".join(f"{e.reason}:{e.pose}" for e in plan.evaluations).encode()).hexdigest(),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", type=int, default=40)
@@ -142,7 +169,12 @@ def main() -> None:
     ap.add_argument("--parts", type=int, default=10)
     ap.add_argument("--gripper", default="2f85")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--digest", type=Path, default=None, help="write each scene's plan as JSON here")
+    ap.add_argument("--compare", type=Path, default=None, help="a --digest file to compare the plans with")
+    ap.add_argument("--profile", type=int, default=0, help="profile the timed plans, print the top N functions")
     args = ap.parse_args()
+    digests: list[dict[str, object]] = []
+    prof = cProfile.Profile() if args.profile else None
     library = default_part_library()
     times: list[float] = []
     cpu_times: list[float] = []
@@ -168,8 +200,12 @@ def main() -> None:
         runs, cpu_runs = [], []
         plan = plan_pick(fits, [], cell, PlanOptions())  # warm-up: template BVHs and synthesis are cached per part
         for _ in range(args.repeats):
+            if prof is not None:
+                prof.enable()
             t0, c0 = time.perf_counter(), time.process_time()
             plan = plan_pick(fits, [], cell, PlanOptions())
+            if prof is not None:
+                prof.disable()
             runs.append((time.perf_counter() - t0) * 1e3)
             cpu_runs.append((time.process_time() - c0) * 1e3)
             for k, v in plan.timing_ms.items():
@@ -179,6 +215,7 @@ def main() -> None:
         n_cands.append(len(plan.evaluations))
         reasons.update(plan.counts)
         statuses[plan.status] += 1
+        digests.append(plan_digest(plan))
         good = uncovered_reachable(layout, cell)
         if good:
             eligible += 1
@@ -211,6 +248,15 @@ def main() -> None:
     print(f"chosen plans colliding per the independent GT check: {collisions}/{statuses['ok']}")
     print(f"max waypoint FK error vs TCP pose: {fk_err * 1e3:.6f} mm")
     print("rejections by reason (all scenes): " + ", ".join(f"{k} {v}" for k, v in reasons.most_common()))
+    if args.digest is not None:
+        args.digest.write_text(json.dumps(digests, indent=1))
+    if args.compare is not None:
+        old = json.loads(args.compare.read_text())
+        diff = [s for s, (a, b) in enumerate(zip(old, digests, strict=False)) if a != b]
+        same = len(digests) - len(diff)
+        print(f"plans compared with {args.compare}: {same}/{len(digests)} identical; differ: {diff}")
+    if prof is not None:
+        pstats.Stats(prof).sort_stats("tottime").print_stats(args.profile)
 
 
 if __name__ == "__main__":
