@@ -3,7 +3,8 @@
 - the fit kernels (numba, cached on disk) and the stored preparations of the built-in and example templates
   (`templates.warmup`);
 - the compiled one-pose inverse kinematics (`kinematics.analytic_ik`, numba, cached on disk), which the planner and
-  the loopback controller call.
+  the loopback controller call;
+- the compiled box-pair test of the planner's cell screen (`collision.obb`, numba, cached on disk).
 
     python -m normpos_grasp.warmup
 """
@@ -15,6 +16,7 @@ import time
 
 import numpy as np
 
+from normpos_grasp.collision.obb import obb_overlap_pairs
 from normpos_grasp.kinematics.robot import Robot
 from normpos_grasp.kinematics.ur_params import ur_params
 from normpos_grasp.templates.warmup import prepare_builtin, warm_up
@@ -34,10 +36,20 @@ def warm_up_kinematics() -> float:
     return time.perf_counter() - t0
 
 
+def warm_up_collision() -> float:
+    """Run the compiled box-pair test once so it is built and cached; returns the seconds it took."""
+    t0 = time.perf_counter()
+    eye = np.eye(3)[None]
+    if not obb_overlap_pairs(np.zeros((1, 3)), eye, np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
+        raise RuntimeError("box test warm-up: two boxes at one centre reported apart")
+    return time.perf_counter() - t0
+
+
 def main() -> None:
     warm_up()  # logs its own time
     prepare_builtin()
     logger.info("inverse kinematics ready in %.1f s", warm_up_kinematics())
+    logger.info("collision box test ready in %.1f s", warm_up_collision())
 
 
 if __name__ == "__main__":

@@ -69,3 +69,53 @@ def test_tool_check_finds_the_same_first_hit_on_every_shape() -> None:
         assert world.check_tool(make_pose(DOWN, [0.0, 0.0, 0.04]), 0.03) is None
     # far from everything: no shape is near, nothing is hit
     assert world.check_tool(make_pose(DOWN, [0.0, 0.0, 1.5]), 0.03) is None
+
+
+def _rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=1,
+    )
+
+
+def test_compiled_box_pairs_match_the_numpy_separating_axis_test() -> None:
+    from normpos_grasp.collision.obb import obb_overlap_pairs
+    from normpos_grasp.collision.world import obb_overlap
+
+    rng = np.random.default_rng(21)
+    n = 4000
+    h1 = np.array([0.01, 0.0135, 0.031])  # a finger
+    c1 = rng.uniform(-0.06, 0.06, size=(n, 3))
+    r1 = _rotations(rng, n)
+    c2 = rng.uniform(-0.02, 0.02, size=(n, 3))
+    r2 = np.where(rng.random(n)[:, None, None] < 0.5, np.eye(3), _rotations(rng, n))  # cell boxes: mostly aligned
+    h2 = rng.uniform(0.005, 0.04, size=(n, 3))
+    # pairs just touching along a face normal: the verdict flips within rounding there
+    c1[:200] = c2[:200] + r2[:200, :, 0] * (h2[:200, :1] + h1[0] - 1e-12)
+    r1[:200] = r2[:200]
+    expected = obb_overlap(c1, r1, h1[None], c2, r2, h2)
+    got = obb_overlap_pairs(c1, r1, h1, c2, r2, h2)
+    assert got.dtype == bool and got.shape == (n,)
+    assert 0.1 * n < expected.sum() < 0.9 * n  # both verdicts well represented
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_tool_box_screen_agrees_with_fcl_on_the_cell_boxes() -> None:
+    world, _, _ = _world()
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform([-0.2, -0.2, 0.0], [0.35, 0.2, 0.25], size=(300, 3))
+    poses = np.stack([make_pose(DOWN, p) for p in xyz])
+    openings = rng.uniform(0.0, 0.085, size=300)
+    hits = world.tool_box_hits(poses, openings)
+    assert 20 < hits.sum() < 280
+    for pose, opening, hit in zip(poses, openings, hits, strict=True):
+        if hit:  # a box of the tool overlaps a cell box: fcl finds the same contact with the cell
+            found = world.check_tool(pose, float(opening), skip=("object", "clutter"))
+            assert found is not None and found.reason == "collision_cell"

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import fcl
 import numpy as np
 
+from normpos_grasp.collision.obb import obb_overlap_pairs
 from normpos_grasp.errors import InputError
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, IntArray
 
@@ -473,10 +474,14 @@ class CollisionWorld:
             rows = np.flatnonzero(~hits)  # poses already hit need no further shape
             if len(rows) == 0:
                 break
-            local = np.broadcast_to(np.asarray(s.tcp_from_shape, dtype=np.float64), (len(rows), 4, 4)).copy()
+            at = poses if len(rows) == n else poses[rows]
+            shape = np.asarray(s.tcp_from_shape, dtype=np.float64)
             if s.moves:
+                local = np.broadcast_to(shape, (len(rows), 4, 4)).copy()
                 local[:, 0, 3] += s.moves * (openings[rows] / 2.0 + s.size[0] / 2.0)
-            world = poses[rows] @ local
+                world = at @ local
+            else:  # one shape pose for every row: the same products, broadcast
+                world = at @ shape
             half = np.asarray(s.size, dtype=np.float64) / 2.0
             # the separating-axis tests along each cell box's own axes first (the tool box's extent there against
             # the centres' distance, 1 nm of slack for rounding): the full test only runs on pairs they cannot part
@@ -489,7 +494,7 @@ class CollisionWorld:
             ii, bb = np.nonzero(np.all(np.abs(d) <= bh[None] + ext + 1e-9, axis=2))
             if len(ii) == 0:
                 continue
-            over = obb_overlap(world[ii, :3, 3], world[ii, :3, :3], half[None], bc[bb], br[bb], bh[bb])
+            over = obb_overlap_pairs(world[ii, :3, 3], world[ii, :3, :3], half, bc[bb], br[bb], bh[bb])
             hits[rows[ii[over]]] = True
         return hits
 

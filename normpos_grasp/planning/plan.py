@@ -582,8 +582,10 @@ def _judged_path(
     trajectory = _time_pieces(pieces, arm, cell, opts.timing)
     timing["timing"] += (time.perf_counter() - t0) * 1e3
     # the values plan.json carries (PickPlan.to_json rounds t to 1 us and q to 1e-9 rad): the judge sees those
-    t = np.array([round(float(v), 6) for v in trajectory.t])
-    q = np.array([[round(float(v), 9) for v in row] for row in trajectory.q])
+    # (Python's round on the samples as floats, as to_json does; tolist instead of a float() per element)
+    t = np.array([round(v, 6) for v in np.asarray(trajectory.t, dtype=np.float64).tolist()])
+    q_rows = np.asarray(trajectory.q, dtype=np.float64)
+    q = np.array([round(v, 9) for v in q_rows.ravel().tolist()]).reshape(q_rows.shape)
     try:
         limits.check_path([w.name for w in waypoints], np.stack([w.q for w in waypoints]), t, q)
     except SafetyViolation as exc:
