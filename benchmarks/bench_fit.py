@@ -10,6 +10,16 @@ Timing: CPU time (process_time) per object of sequential `fit_template` calls, a
 both after a warm-up fit, whose time (compiled-kernel load, or compile on a fresh install) is printed apart.
 
     .venv/bin/python benchmarks/bench_fit.py [--frames 12] [--seed 1] [--unlabelled 4] [--lmo] [--workers 2]
+
+`--gil-share` measures instead what two threads can gain (issue 21 item 2), in thread CPU time, which another
+process's load does not change: every call of a compiled kernel (`templates.kernels`, numba) made from the fitting
+modules is timed with `time.thread_time` around it, and the kernels' share of each `fit_best`'s thread CPU is the
+part that runs without the GIL (kernels compiled without nogil are counted apart). Amdahl's bound for 2 threads,
+1 / ((1 - share) + share / 2), caps `fit_many`'s gain from its GIL-free part (numpy and scipy release the GIL in
+some of their own loops too: the bound is a floor of what could run in parallel, the wall ratio its outcome). Also
+printed: the process CPU and the wall of `fit_many` with 1 and 2 workers on the same objects, with the load.
+
+    nice -n 10 .venv/bin/python benchmarks/bench_fit.py --gil-share --frames 4
 """
 
 from __future__ import annotations
@@ -18,7 +28,9 @@ import argparse
 import json
 import os
 import time
+from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -63,7 +75,11 @@ def main() -> None:
     ap.add_argument("--lmo", action="store_true", help="also fit the LM-O real frame (../shared/data)")
     ap.add_argument("--workers", type=int, default=2, help="threads of fit_many")
     ap.add_argument("--repeats", type=int, default=3, help="fit_many timing repeats per frame")
+    ap.add_argument("--gil-share", action="store_true", help="measure the GIL-free share of fit CPU and stop")
     args = ap.parse_args()
+    if args.gil_share:
+        gil_share(args.frames, args.seed, args.count, args.repeats)
+        return
 
     from normpos_grasp.measure.measure import measure_instances
     from normpos_grasp.sim.cameras import CameraOptions
@@ -182,6 +198,116 @@ def main() -> None:
     print(f"load average after: {_load()}")
     if args.lmo:
         lmo()
+
+
+class _TimedKernels:
+    """Stands in for the `kernels` module in the fitting modules: its compiled kernels timed per call (thread CPU)."""
+
+    def __init__(self, module: Any) -> None:
+        self.module = module
+        self.seconds: Counter[str] = Counter()
+        self.calls: Counter[str] = Counter()
+        self.nogil: dict[str, bool] = {}
+        self._wrapped: dict[str, Any] = {}
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(self.module, name)
+        if not hasattr(value, "targetoptions"):  # not a numba dispatcher: constants, Python helpers
+            return value
+        if name not in self._wrapped:
+            self.nogil[name] = bool(value.targetoptions.get("nogil", False))
+
+            def timed(*a: Any, _k: Any = value, _n: str = name) -> Any:
+                t0 = time.thread_time()
+                try:
+                    return _k(*a)
+                finally:
+                    self.seconds[_n] += time.thread_time() - t0
+                    self.calls[_n] += 1
+
+            self._wrapped[name] = timed
+        return self._wrapped[name]
+
+
+def gil_share(frames: int, seed: int, count: int, repeats: int) -> None:
+    """Print the share of fit thread CPU spent in GIL-free compiled kernels, and fit_many with 1 and 2 workers."""
+    import importlib
+
+    from normpos_grasp.measure.measure import measure_instances
+    from normpos_grasp.sim.cameras import CameraOptions
+    from normpos_grasp.sim.dataset import generate_frame
+    from normpos_grasp.sim.parts import default_part_library
+    from normpos_grasp.sim.scene import SceneOptions
+    from normpos_grasp.templates import kernels
+
+    library = default_part_library()
+    for t in library:
+        prepare(t)
+    opts = FitOptions()
+    print(f"load average before: {_load()} (1 / 5 / 15 min, {os.cpu_count()} CPUs)")
+    cases = []
+    for f in range(frames):
+        sf = generate_frame(
+            SceneOptions(count=count, seed=seed * 1000 + f),
+            "d435",
+            CameraOptions(distance_m=(0.5, 1.0)),
+            seed=seed * 7919 + f,
+            library=library,
+        )
+        insts = [i for i in sf.instances if sf.visib_fractions[i.source_id] >= 0.3]
+        if insts:
+            cases.append((measure_instances(sf.frame, insts), FitContext(sf.frame.camera, sf.frame.depth_m)))
+    fit_best(cases[0][0][0], library, opts, cases[0][1])  # warm-up: kernels loaded (or compiled)
+    timed = _TimedKernels(kernels)
+    users = [
+        importlib.import_module(f"normpos_grasp.templates.{m}")
+        for m in ("fit", "icp", "scoring", "edges", "control_points", "features")
+    ]
+    for m in users:
+        m.kernels = timed  # type: ignore[attr-defined]
+    try:
+        for _ in range(2):  # the first pass fills what the fitter caches on first use; the second is measured
+            shares, totals = [], []
+            timed.seconds.clear()
+            timed.calls.clear()
+            for nps, ctx in cases:
+                for n in nps:
+                    before = sum(timed.seconds.values())
+                    t0 = time.thread_time()
+                    fit_best(n, library, opts, ctx)
+                    total = time.thread_time() - t0
+                    totals.append(total)
+                    shares.append((sum(timed.seconds.values()) - before) / total)
+    finally:
+        for m in users:
+            m.kernels = kernels  # type: ignore[attr-defined]
+    nogil_s = sum(v for k, v in timed.seconds.items() if timed.nogil[k])
+    gil_s = sum(v for k, v in timed.seconds.items() if not timed.nogil[k])
+    all_s = float(np.sum(totals))
+    share = nogil_s / all_s
+    n_obj = len(totals)
+    per_obj = np.median(totals) * 1e3
+    print(f"objects: {n_obj} in {len(cases)} frames; fit_best thread CPU per object median {per_obj:.1f} ms")
+    print(
+        f"in compiled nogil kernels: {100 * share:.1f} % of fit thread CPU (per object median "
+        f"{100 * np.median(shares):.1f} %, p10 {100 * np.percentile(shares, 10):.1f} %); compiled with the GIL: "
+        f"{100 * gil_s / all_s:.1f} %; {sum(timed.calls.values()) / n_obj:.0f} kernel calls per object"
+    )
+    print(f"Amdahl bound for 2 threads from the nogil share: {1 / ((1 - share) + share / 2):.2f}x")
+    top = sorted(timed.seconds.items(), key=lambda kv: -kv[1])[:8]
+    print("  kernels, ms per object: " + ", ".join(f"{k} {v / n_obj * 1e3:.1f}" for k, v in top))
+    for workers in (1, 2, 1, 2):
+        walls, cpus = [], []
+        for nps, ctx in cases:
+            for _ in range(repeats):
+                w0, c0 = time.perf_counter(), time.process_time()
+                fit_many(nps, library, opts, ctx, workers=workers)
+                walls.append((time.perf_counter() - w0) / len(nps) * 10)
+                cpus.append((time.process_time() - c0) / len(nps) * 10)
+        print(
+            f"fit_many workers={workers}: wall per 10 objects median {np.median(walls) * 1e3:.0f} ms, process CPU "
+            f"{np.median(cpus) * 1e3:.0f} ms (load {_load()})"
+        )
 
 
 def _load() -> str:
