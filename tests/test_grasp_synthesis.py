@@ -183,3 +183,21 @@ def test_time_parameterisation_respects_caps() -> None:
     np.testing.assert_allclose(traj.q[0], line[0])
     np.testing.assert_allclose(traj.q[-1], jump[-1])
     assert traj.duration_s >= 2 * 1.0 / 1.0  # at least two 1-rad moves at 1 rad/s
+
+
+def test_cut_extent_from_one_outline_equals_the_hull_per_height() -> None:
+    """vertical_prism_grasps computes a cut's hull once for its three tip heights: the extents equal one hull each."""
+    from normpos_grasp.grasp.candidates import _cut_outline, _extent_above
+
+    rng = np.random.default_rng(11)
+    cuts = [rng.normal(scale=0.02, size=(n, 2)) for n in (3, 5, 12, 40)]
+    cuts.append(np.column_stack([np.linspace(0, 0.03, 6), np.linspace(0, 0.01, 6)]))  # collinear: no hull
+    cuts.append(np.array([[0.0, 0.0], [0.01, 0.02]]))  # two points
+    for cut in cuts:
+        outline = _cut_outline(cut)
+        lo_z, hi_z = float(cut[:, 1].min()), float(cut[:, 1].max())
+        for z in np.linspace(lo_z - 0.01, hi_z + 0.01, 9):
+            assert _extent_above(cut, float(z), outline) == _extent_above(cut, float(z))
+    wide = np.array([[-0.02, 0.0], [0.02, 0.0], [0.0, 0.04]])  # a triangle, apex up
+    lo, hi = _extent_above(wide, 0.02, _cut_outline(wide))
+    assert lo == pytest.approx(-0.01) and hi == pytest.approx(0.01)  # the hull's edges cut at half height

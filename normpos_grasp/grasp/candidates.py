@@ -384,10 +384,11 @@ def vertical_prism_grasps(
         if height < 1e-3:
             continue
         depths = {round(min(options.depth(height), height / 2.0), 6), round(0.3 * height, 6), round(0.2 * height, 6)}
+        outline = _cut_outline(cut)
         for d_idx, depth in enumerate(sorted(depths, reverse=True)):
             z_tcp = top - depth
             # everything of the cut above the jaw tips must fit between the open jaws
-            lo, hi = _extent_above(cut, z_tcp - options.finger_tip_m)
+            lo, hi = _extent_above(cut, z_tcp - options.finger_tip_m, outline)
             width = hi - lo
             if width < 1e-3:
                 continue
@@ -401,17 +402,26 @@ def vertical_prism_grasps(
     return out
 
 
-def _extent_above(cut: FloatArray, z_min: float) -> tuple[float, float]:
-    """(low, high) along the first column of the convex hull of 2D points `cut` (M, 2) (across, height), keeping
-    only the part of the hull at height >= `z_min` (its edges cut at that height); the whole hull when none is."""
+def _cut_outline(cut: FloatArray) -> tuple[FloatArray, FloatArray | None]:
+    """The distinct points of a 2D cut (M, 2) (rounded to 1e-9) and its convex hull's ring (None under 3 points)."""
     pts = np.unique(np.round(cut, 9), axis=0)
+    if len(pts) < 3:
+        return pts, None
+    try:
+        return pts, pts[ConvexHull(pts).vertices]
+    except QhullError:  # collinear cut: its points are its own outline
+        return pts, pts
+
+
+def _extent_above(
+    cut: FloatArray, z_min: float, outline: tuple[FloatArray, FloatArray | None] | None = None
+) -> tuple[float, float]:
+    """(low, high) along the first column of the convex hull of 2D points `cut` (M, 2) (across, height), keeping
+    only the part of the hull at height >= `z_min` (its edges cut at that height); the whole hull when none is.
+    outline: `_cut_outline(cut)` when already computed (one hull for several heights)."""
+    pts, ring = _cut_outline(cut) if outline is None else outline
     keep = [pts[pts[:, 1] >= z_min, 0]]
-    if len(pts) >= 3:
-        try:
-            hull = ConvexHull(pts)
-            ring = pts[hull.vertices]
-        except QhullError:  # collinear cut: its points are its own outline
-            ring = pts
+    if ring is not None:
         a, b = ring, np.roll(ring, -1, axis=0)
         crosses = (a[:, 1] - z_min) * (b[:, 1] - z_min) < 0
         t = (z_min - a[crosses, 1]) / (b[crosses, 1] - a[crosses, 1])
