@@ -4,7 +4,7 @@
   (`templates.warmup`);
 - the compiled one-pose inverse kinematics (`kinematics.analytic_ik`, numba, cached on disk), which the planner and
   the loopback controller call;
-- the compiled box-pair test of the planner's cell screen (`collision.obb`, numba, cached on disk).
+- the compiled box tests of the planner's cell screen (`collision.obb`, numba, cached on disk).
 
     python -m normpos_grasp.warmup
 """
@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from normpos_grasp.collision.obb import obb_overlap_pairs
+from normpos_grasp.collision.obb import aligned_box_hits, obb_overlap_pairs
 from normpos_grasp.kinematics.robot import Robot
 from normpos_grasp.kinematics.ur_params import ur_params
 from normpos_grasp.templates.warmup import prepare_builtin, warm_up
@@ -42,6 +42,8 @@ def warm_up_collision() -> float:
     eye = np.eye(3)[None]
     if not obb_overlap_pairs(np.zeros((1, 3)), eye, np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
         raise RuntimeError("box test warm-up: two boxes at one centre reported apart")
+    if not aligned_box_hits(np.eye(4)[None], np.ones((1, 3)), np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
+        raise RuntimeError("box screen warm-up: two boxes at one centre reported apart")
     return time.perf_counter() - t0
 
 

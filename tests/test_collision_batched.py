@@ -119,3 +119,26 @@ def test_tool_box_screen_agrees_with_fcl_on_the_cell_boxes() -> None:
         if hit:  # a box of the tool overlaps a cell box: fcl finds the same contact with the cell
             found = world.check_tool(pose, float(opening), skip=("object", "clutter"))
             assert found is not None and found.reason == "collision_cell"
+
+
+def test_compiled_aligned_screen_matches_the_aabb_test_then_the_numpy_pairs() -> None:
+    from normpos_grasp.collision.obb import aligned_box_hits
+    from normpos_grasp.collision.world import obb_overlap
+
+    rng = np.random.default_rng(22)
+    n = 3000
+    half = np.array([0.01, 0.0135, 0.031])
+    world = np.repeat(np.eye(4)[None], n, axis=0)
+    world[:, :3, :3] = _rotations(rng, n)
+    world[:, :3, 3] = rng.uniform(-0.15, 0.15, size=(n, 3))
+    bc = np.array([[0.0, 0.0, -0.025], [0.12, 0.0, 0.05], [-0.12, 0.0, 0.05]])  # a floor and two walls
+    bh = np.array([[0.15, 0.15, 0.025], [0.01, 0.15, 0.05], [0.01, 0.15, 0.05]])
+    br = np.repeat(np.eye(3)[None], 3, axis=0)
+    ext = (np.abs(world[:, :3, :3]) * half).sum(axis=2)
+    ii, bb = np.nonzero(np.all(np.abs(world[:, None, :3, 3] - bc[None]) <= bh[None] + ext[:, None] + 1e-9, axis=2))
+    expected = np.zeros(n, dtype=bool)
+    expected[ii[obb_overlap(world[ii, :3, 3], world[ii, :3, :3], half[None], bc[bb], br[bb], bh[bb])]] = True
+    got = aligned_box_hits(world, ext, half, bc, br, bh)
+    assert 0.1 * n < expected.sum() < 0.9 * n
+    assert (np.isin(np.arange(n), ii) & ~expected).any()  # some pairs pass the AABB test and still stay apart
+    np.testing.assert_array_equal(got, expected)

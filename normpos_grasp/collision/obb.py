@@ -28,49 +28,96 @@ def obb_overlap_pairs(
     )
 
 
+def aligned_box_hits(
+    world: FloatArray, ext: FloatArray, half: FloatArray, bc: FloatArray, br: FloatArray, bh: FloatArray
+) -> BoolArray:
+    """(R,) bool: True where tool box r (world_from_shape (R, 4, 4), half extents `half` (3,), world AABB half
+    extents `ext` (R, 3)) overlaps one of the world-aligned boxes (centres bc (B, 3), rotations br (B, 3, 3), half
+    extents bh (B, 3)), m: a pair passes the AABB test (|centre distance| <= bh + ext + 1 nm per axis) before the
+    separating-axis test (`obb_overlap_pairs`'s). The cell-box screen of `CollisionWorld.tool_box_hits`."""
+    return np.asarray(
+        _aligned_hits(
+            np.ascontiguousarray(world, dtype=np.float64),
+            np.ascontiguousarray(ext, dtype=np.float64),
+            np.ascontiguousarray(half, dtype=np.float64).reshape(3),
+            np.ascontiguousarray(bc, dtype=np.float64),
+            np.ascontiguousarray(br, dtype=np.float64),
+            np.ascontiguousarray(bh, dtype=np.float64),
+        ),
+        dtype=bool,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _aligned_hits(world, ext, half, bc, br, bh):  # type: ignore[no-untyped-def]
+    n = world.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    c1 = np.empty(3)
+    r1 = np.empty((3, 3))
+    for r in range(n):
+        for i in range(3):
+            c1[i] = world[r, i, 3]
+            for j in range(3):
+                r1[i, j] = world[r, i, j]
+        for b in range(bc.shape[0]):
+            near = True
+            for i in range(3):
+                if not abs(c1[i] - bc[b, i]) <= bh[b, i] + ext[r, i] + 1e-9:
+                    near = False
+            if near and _sat(c1, r1, half, bc[b], br[b], bh[b]):
+                out[r] = True
+                break
+    return out
+
+
 @njit(cache=True, nogil=True)
 def _overlap(c1, r1, h1, c2, r2, h2):  # type: ignore[no-untyped-def]
     n = c1.shape[0]
     out = np.zeros(n, dtype=np.bool_)
+    for k in range(n):
+        out[k] = _sat(c1[k], r1[k], h1, c2[k], r2[k], h2[k])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _sat(c1, r1, h1, c2, r2, h2):  # type: ignore[no-untyped-def]
+    """One pair: centres (3,), rotations (3, 3), half extents (3,); True where the boxes overlap."""
     rot = np.empty((3, 3))
     ar = np.empty((3, 3))
     t = np.empty(3)
-    for k in range(n):
-        for i in range(3):
-            for m in range(3):
-                s = 0.0
-                for j in range(3):
-                    s += r1[k, j, i] * r2[k, j, m]
-                rot[i, m] = s
-                ar[i, m] = abs(s) + 1e-12
+    for i in range(3):
+        for m in range(3):
             s = 0.0
             for j in range(3):
-                s += r1[k, j, i] * (c2[k, j] - c1[k, j])
-            t[i] = s
-        sep = False
-        for i in range(3):  # box 1 axes
-            rb = 0.0
-            for j in range(3):
-                rb += h2[k, j] * ar[i, j]
-            if abs(t[i]) > h1[i] + rb:
-                sep = True
-        for j in range(3):  # box 2 axes
-            ra = 0.0
-            d = 0.0
-            for i in range(3):
-                ra += h1[i] * ar[i, j]
-                d += t[i] * rot[i, j]
-            if abs(d) > ra + h2[k, j]:
-                sep = True
-        for i in range(3):  # cross products
-            i1 = (i + 1) % 3
-            i2 = (i + 2) % 3
-            for j in range(3):
-                j1 = (j + 1) % 3
-                j2 = (j + 2) % 3
-                ra = h1[i1] * ar[i2, j] + h1[i2] * ar[i1, j]
-                rb = h2[k, j1] * ar[i, j2] + h2[k, j2] * ar[i, j1]
-                if abs(t[i2] * rot[i1, j] - t[i1] * rot[i2, j]) > ra + rb:
-                    sep = True
-        out[k] = not sep
-    return out
+                s += r1[j, i] * r2[j, m]
+            rot[i, m] = s
+            ar[i, m] = abs(s) + 1e-12
+        s = 0.0
+        for j in range(3):
+            s += r1[j, i] * (c2[j] - c1[j])
+        t[i] = s
+    for i in range(3):  # box 1 axes
+        rb = 0.0
+        for j in range(3):
+            rb += h2[j] * ar[i, j]
+        if abs(t[i]) > h1[i] + rb:
+            return False
+    for j in range(3):  # box 2 axes
+        ra = 0.0
+        d = 0.0
+        for i in range(3):
+            ra += h1[i] * ar[i, j]
+            d += t[i] * rot[i, j]
+        if abs(d) > ra + h2[j]:
+            return False
+    for i in range(3):  # cross products
+        i1 = (i + 1) % 3
+        i2 = (i + 2) % 3
+        for j in range(3):
+            j1 = (j + 1) % 3
+            j2 = (j + 2) % 3
+            ra = h1[i1] * ar[i2, j] + h1[i2] * ar[i1, j]
+            rb = h2[j1] * ar[i, j2] + h2[j2] * ar[i, j1]
+            if abs(t[i2] * rot[i1, j] - t[i1] * rot[i2, j]) > ra + rb:
+                return False
+    return True

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import fcl
 import numpy as np
 
-from normpos_grasp.collision.obb import obb_overlap_pairs
+from normpos_grasp.collision.obb import aligned_box_hits, obb_overlap_pairs
 from normpos_grasp.errors import InputError
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, IntArray
 
@@ -485,12 +485,12 @@ class CollisionWorld:
             half = np.asarray(s.size, dtype=np.float64) / 2.0
             # the separating-axis tests along each cell box's own axes first (the tool box's extent there against
             # the centres' distance, 1 nm of slack for rounding): the full test only runs on pairs they cannot part
-            if aligned:  # boxes along the world axes (the usual cell): the tool box's world AABB
-                d = world[:, None, :3, 3] - bc[None]
-                ext = (np.abs(world[:, :3, :3]) * half).sum(axis=2)[:, None]
-            else:
-                d = (box_from_world @ (world[:, None, :3, 3] - bc[None])[..., None])[..., 0]  # (R, B, 3) box frames
-                ext = (np.abs(box_from_world @ world[:, None, :3, :3]) * half).sum(axis=3)
+            if aligned:  # boxes along the world axes (the usual cell): the tool box's world AABB, both tests compiled
+                ext = (np.abs(world[:, :3, :3]) * half).sum(axis=2)
+                hits[rows[aligned_box_hits(world, ext, half, bc, br, bh)]] = True
+                continue
+            d = (box_from_world @ (world[:, None, :3, 3] - bc[None])[..., None])[..., 0]  # (R, B, 3) box frames
+            ext = (np.abs(box_from_world @ world[:, None, :3, :3]) * half).sum(axis=3)
             ii, bb = np.nonzero(np.all(np.abs(d) <= bh[None] + ext + 1e-9, axis=2))
             if len(ii) == 0:
                 continue
