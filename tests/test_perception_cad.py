@@ -81,6 +81,39 @@ def test_nms_per_place_cap_keeps_a_second_place() -> None:
     assert list(cs) == [10.0, 9.0, 5.0]  # two at the first place, then the second place
 
 
+def test_compiled_explained_pixels_match_the_kd_tree_rule() -> None:
+    """ppf.explained_pixels (the detector's compiled pull-in step) against the per-pixel cKDTree rule it replaced:
+    a posed bracket's surface plus noise, floor and clutter pixels, scale 1 and 1.05."""
+    t = {p.name: p for p in default_part_library()}["bracket"]
+    prep = prepare(t)
+    rng = np.random.default_rng(7)
+    h, w = 60, 80
+    pmap = np.zeros((h, w, 3))
+    cfo = np.eye(4)
+    cfo[:3, :3] = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix()
+    cfo[:3, 3] = [0.0, 0.0, 0.7]
+    surf = prep.samples[rng.integers(0, len(prep.samples), h * w // 2)] @ cfo[:3, :3].T + cfo[:3, 3]
+    pts = np.concatenate([surf, cfo[:3, 3] + rng.uniform(-0.08, 0.08, (h * w - len(surf), 3))])
+    pts += rng.normal(0.0, 0.002, pts.shape)  # noise of the order of the tolerance: pixels on both sides of it
+    pmap[:] = pts[rng.permutation(h * w)].reshape(h, w, 3)
+    allowed = rng.random((h, w)) < 0.8
+    ofc = np.linalg.inv(cfo)
+    for scale in (1.0, 1.05):
+        r, bound, tol, noise = 0.6 * prep.diameter, 0.05 * prep.diameter + 0.01, 0.003, 0.0036
+        got = ppf.explained_pixels(pmap, allowed, (5, 55, 3, 77), ofc, scale, prep, r, bound, tol, noise)
+        sub = np.zeros((h, w), dtype=bool)
+        sub[5:55, 3:77] = allowed[5:55, 3:77]
+        vv, uu = np.nonzero(sub)
+        p = pmap[vv, uu]
+        po = (p @ ofc[:3, :3].T + ofc[:3, 3]) / scale
+        near = np.linalg.norm(po - prep.centroid, axis=1) < r
+        d, _ = prep.tree.query(po[near], distance_upper_bound=bound)
+        sel = np.flatnonzero(near)[d * scale < tol + 2.5 * noise * p[near, 2] ** 2]
+        want = vv[sel] * w + uu[sel]
+        assert 200 < len(want) < int(sub.sum())  # both explained and unexplained pixels in the box
+        np.testing.assert_array_equal(got, want)
+
+
 @pytest.fixture(scope="module")
 def scene():  # type: ignore[no-untyped-def]
     from normpos_grasp.sim.cameras import CameraOptions

@@ -821,21 +821,19 @@ class CadDetector:
         u0, u1, v0, v1 = max(u0, 0), min(u1, w), max(v0, 0), min(v1, h)
         if u1 <= u0 or v1 <= v0:
             return np.zeros(0, dtype=np.int64)
-        sub_ok = allowed.reshape(h, w)[v0:v1, u0:u1]
-        vv, uu = np.nonzero(sub_ok)
-        if len(vv) == 0:
-            return np.zeros(0, dtype=np.int64)
-        p = pmap[v0:v1, u0:u1][vv, uu]
-        ofc = invert_pose(cfo)
-        po = (p @ ofc[:3, :3].T + ofc[:3, 3]) / scale
-        near = np.linalg.norm(po - prep.centroid, axis=1) < r / scale
-        if not near.any():
-            return np.zeros(0, dtype=np.int64)
-        d, _ = prep.tree.query(po[near], distance_upper_bound=0.05 * prep.diameter + 0.01 + band_m)
-        tol = opts.explain_tol_m + band_m + 2.5 * opts.noise_per_m2 * p[near, 2] ** 2
-        ok = d * scale < tol
-        sel = np.flatnonzero(near)[ok]
-        return ((vv[sel] + v0) * w + (uu[sel] + u0)).astype(np.int64)
+        # compiled (ppf.explained_pixels): the exact nearest sample of each allowed pixel's point in the box
+        return ppf.explained_pixels(
+            pmap,
+            allowed.reshape(h, w),
+            (v0, v1, u0, u1),
+            invert_pose(cfo),
+            scale,
+            prep,
+            r / scale,
+            0.05 * prep.diameter + 0.01 + band_m,
+            opts.explain_tol_m + band_m,
+            opts.noise_per_m2,
+        )
 
     # -- output ---------------------------------------------------------------------------------
     def _instances(

@@ -11,6 +11,7 @@ released) like `templates.kernels`.
 
 from __future__ import annotations
 
+import math
 import threading
 import weakref
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from normpos_grasp.templates import kernels
 from normpos_grasp.templates.features import voxel_downsample
 from normpos_grasp.templates.prepared import PreparedTemplate
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
@@ -513,3 +515,93 @@ def nms_poses(
             break
     ki = np.asarray(kept)
     return p[ki], scores[order][ki]
+
+
+@numba.njit(cache=True, nogil=True)
+def _explained_box(  # type: ignore[no-untyped-def]
+    pmap, allowed, box, ofc, scale, centroid, r_obj, bound, tol_m, noise_per_m2, samples, kd
+):
+    """Row-major flat indices of the `allowed` pixels in box (v0, v1, u0, u1) whose point (pmap, camera frame)
+    ofc (object_from_camera) puts within r_obj of the centroid and within tol_m + 2.5 noise_per_m2 z^2 (scaled)
+    of the nearest sample (exact, the flat KD-tree of all samples), nearer than `bound` (object frame, metres)."""
+    dim, split, left, right, start, end, perm, roots = kd
+    wid = pmap.shape[1]
+    v0, v1, u0, u1 = box[0], box[1], box[2], box[3]
+    out = np.empty(max((v1 - v0) * (u1 - u0), 0), dtype=np.int64)
+    stack_n = np.empty(128, dtype=np.int64)
+    stack_b = np.empty(128)
+    n = 0
+    for v in range(v0, v1):
+        for u in range(u0, u1):
+            if not allowed[v, u]:
+                continue
+            x = pmap[v, u, 0]
+            y = pmap[v, u, 1]
+            z = pmap[v, u, 2]
+            q0 = (ofc[0, 0] * x + ofc[0, 1] * y + ofc[0, 2] * z + ofc[0, 3]) / scale
+            q1 = (ofc[1, 0] * x + ofc[1, 1] * y + ofc[1, 2] * z + ofc[1, 3]) / scale
+            q2 = (ofc[2, 0] * x + ofc[2, 1] * y + ofc[2, 2] * z + ofc[2, 3]) / scale
+            a = q0 - centroid[0]
+            b = q1 - centroid[1]
+            c = q2 - centroid[2]
+            if not (a * a + b * b + c * c < r_obj * r_obj):
+                continue
+            # the search starts from the pixel's own tolerance (a far pixel is rejected near the root)
+            lim = min(bound, (tol_m + 2.5 * noise_per_m2 * z * z) / scale)
+            d2, near = kernels._kd_nearest(
+                q0,
+                q1,
+                q2,
+                roots[0],
+                samples,
+                dim,
+                split,
+                left,
+                right,
+                start,
+                end,
+                perm,
+                lim * lim,
+                -1,
+                stack_n,
+                stack_b,
+            )
+            if near >= 0 and d2 < bound * bound and math.sqrt(d2) * scale < tol_m + 2.5 * noise_per_m2 * z * z:
+                out[n] = v * wid + u
+                n += 1
+    return out[:n]
+
+
+def explained_pixels(
+    pmap: FloatArray,
+    allowed: BoolArray,
+    box: tuple[int, int, int, int],
+    object_from_camera: FloatArray,
+    scale: float,
+    prep: PreparedTemplate,
+    r_obj: float,
+    bound: float,
+    tol_m: float,
+    noise_per_m2: float,
+) -> IntArray:
+    """Flat indices (row-major over pmap (H, W, 3), camera frame, metres) of the `allowed` (H, W) pixels inside box
+    (v0, v1, u0, u1) that the pose explains: within r_obj (object frame) of the template's centroid and nearer to
+    its surface samples than tol_m + 2.5 x noise_per_m2 x z^2 (metres, after scaling) and than `bound` (object
+    frame). Compiled; the same rule as a KD-tree query per pixel."""
+    return np.asarray(
+        _explained_box(
+            pmap,
+            allowed,
+            np.asarray(box, dtype=np.int64),
+            np.ascontiguousarray(object_from_camera, dtype=np.float64),
+            float(scale),
+            np.asarray(prep.centroid, dtype=np.float64),
+            float(r_obj),
+            float(bound),
+            float(tol_m),
+            float(noise_per_m2),
+            prep.samples,
+            prep.kd,
+        ),
+        dtype=np.int64,
+    )
