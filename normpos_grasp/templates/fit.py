@@ -519,16 +519,11 @@ _NEAR_COS = float(np.cos(np.deg2rad(8)))
 _SATURATING_SHARE = 0.15
 
 
-def _coarse_rank(
-    prep: PreparedTemplate, poses: FloatArray, scales: FloatArray, frac: FloatArray, meas: _Measured
-) -> FloatArray:
-    """(H,) ranking of coarse poses for refinement on parts where the coarse fraction saturates
-    (`_SATURATING_SHARE`): the score bound (`score_bounds`: inliers, RMSE, consistency) on the score points, ties
-    broken by the coarse inlier fraction. A 2.5 sigma inlier distance of 7 mm at 0.9 m is a fifth of a 34 mm
-    bushing: an upside-down pose also scores 1.0 and took the refinement slots from the right one."""
-    if len(poses) == 0:
-        return frac
-    bound, _, _ = score_bounds(
+def _score_bounds(
+    prep: PreparedTemplate, poses: FloatArray, scales: FloatArray, meas: _Measured
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """`score_bounds` of object_from_frame poses (H, 4, 4) and scales (H,) on the measurement's score points."""
+    return score_bounds(
         prep,
         poses,
         scales,
@@ -538,6 +533,18 @@ def _coarse_rank(
         meas.neighbours_score,
         thr_median=meas.thr_score_median,
     )
+
+
+def _coarse_rank(
+    prep: PreparedTemplate, poses: FloatArray, scales: FloatArray, frac: FloatArray, meas: _Measured
+) -> FloatArray:
+    """(H,) ranking of coarse poses for refinement on parts where the coarse fraction saturates
+    (`_SATURATING_SHARE`): the score bound (`score_bounds`: inliers, RMSE, consistency) on the score points, ties
+    broken by the coarse inlier fraction. A 2.5 sigma inlier distance of 7 mm at 0.9 m is a fifth of a 34 mm
+    bushing: an upside-down pose also scores 1.0 and took the refinement slots from the right one."""
+    if len(poses) == 0:
+        return frac
+    bound, _, _ = _score_bounds(prep, poses, scales, meas)
     return np.asarray(bound + 1e-3 * frac, dtype=np.float64)
 
 
@@ -581,16 +588,7 @@ def _refine(
         trim=opts.fine_trim,
         thr_median=meas.thr_fit_median,
     )
-    bound, res, dist = score_bounds(
-        prep,
-        poses,
-        scales,
-        meas.pts_score,
-        meas.nrm_score,
-        meas.thr_score,
-        meas.neighbours_score,
-        thr_median=meas.thr_score_median,
-    )
+    bound, res, dist = _score_bounds(prep, poses, scales, meas)
     out = list(scored)
     best = max((c.score.score for c in out), default=0.0)
     for i in np.argsort(-bound, kind="stable"):
