@@ -1,6 +1,7 @@
-"""Compiled (numba, nogil) separating-axis test of oriented box pairs: `world.obb_overlap` for the pairs the tool's
-cell-box screen (`CollisionWorld.tool_box_hits`) cannot part by their axis-aligned extents, without its ~50 numpy
-calls per batch. Same axes, same sums in the same order, same 1e-12 guard: the same verdicts."""
+"""Compiled (numba, nogil) separating-axis test of oriented box pairs, for the pairs the tool's cell-box screen
+(`CollisionWorld.tool_box_hits`) cannot part by their axis-aligned extents (it replaced a numpy version of ~50 calls
+per batch; tests/test_collision_batched.py keeps that one as the reference: same axes, same sums in the same order,
+same 1e-12 guard, the same verdicts)."""
 
 from __future__ import annotations
 

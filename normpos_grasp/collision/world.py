@@ -123,34 +123,6 @@ class _Element:
     box: tuple[FloatArray, FloatArray] | None = None  # (world_from_box (4, 4), half extents (3,)) for boxes
 
 
-def obb_overlap(
-    c1: FloatArray, r1: FloatArray, h1: FloatArray, c2: FloatArray, r2: FloatArray, h2: FloatArray
-) -> FloatArray:
-    """Exact separating-axis test of oriented boxes, broadcast over leading axes: centres (..., 3), rotations
-    (..., 3, 3) (columns = box axes), half extents (..., 3). Returns (...,) bool: True where the boxes overlap."""
-    rot = np.einsum("...ji,...jk->...ik", r1, r2)  # r1^T r2
-    t = np.einsum("...ji,...j->...i", r1, c2 - c1)  # in box 1's frame
-    abs_rot = np.abs(rot) + 1e-12
-    sep = np.zeros(np.broadcast_shapes(t.shape[:-1], h2.shape[:-1], h1.shape[:-1]), dtype=bool)
-    for i in range(3):  # box 1 axes
-        ra = h1[..., i]
-        rb = np.einsum("...j,...j->...", h2, abs_rot[..., i, :])
-        sep |= np.abs(t[..., i]) > ra + rb
-    for j in range(3):  # box 2 axes
-        ra = np.einsum("...i,...i->...", h1, abs_rot[..., :, j])
-        rb = h2[..., j]
-        sep |= np.abs(np.einsum("...i,...i->...", t, rot[..., :, j])) > ra + rb
-    for i in range(3):  # cross products
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for j in range(3):
-            j1, j2 = (j + 1) % 3, (j + 2) % 3
-            ra = h1[..., i1] * abs_rot[..., i2, j] + h1[..., i2] * abs_rot[..., i1, j]
-            rb = h2[..., j1] * abs_rot[..., i, j2] + h2[..., j2] * abs_rot[..., i, j1]
-            dist = np.abs(t[..., i2] * rot[..., i1, j] - t[..., i1] * rot[..., i2, j])
-            sep |= dist > ra + rb
-    return ~sep
-
-
 def _grown_tool(tool: ToolModel, by_m: float) -> list[tuple[fcl.CollisionObject, FloatArray, FloatArray, int]]:
     """(object, tcp_from_shape at zero opening, size, moves) of the tool's shapes grown by `by_m` on every side;
     jaw fingers grow outwards only (their inner faces stay where they are)."""
