@@ -184,6 +184,38 @@ def test_short_line_lowers_its_passing_speeds() -> None:
     _limits().check_trajectory(traj.t, traj.q)
 
 
+def test_a_retry_reuses_the_blends_it_left_unchanged() -> None:
+    """A blocked blend late in the path lowers its passing speeds and the profiles are recomputed; the first
+    transfer's speeds stay as they were, so its blend (and its collision check) is taken as found, not redone."""
+    q_line, tcp = _line_samples(np.array([0.45, 0.1, 0.30]), np.array([0.45, 0.1, 0.15]))
+    home = q_line[0] + np.array([0.8, -0.3, 0.2, 0.1, 0.0, 0.5])
+    away = q_line[-1] + np.array([-0.6, 0.2, -0.1, 0.0, 0.3, 0.0])
+    first: list[np.ndarray] = []
+    second: list[np.ndarray] = []
+
+    def free_first(qs: np.ndarray) -> bool:
+        first.append(qs)
+        return True
+
+    def blocked(qs: np.ndarray) -> bool:
+        second.append(qs)
+        return False
+
+    pieces = [
+        PathPiece(np.stack([home, q_line[0]]), None, False, free_first),
+        PathPiece(q_line, tcp),
+        PathPiece(np.stack([q_line[-1], away]), None, True, blocked),
+    ]
+    traj = time_path(pieces, VMAX, AMAX, LOWER, UPPER, 0.4, 2.0, OPTS)
+    assert len(second) == 1  # the blocked blend was tried, then the arm rests at the line's end
+    assert len(first) == 1  # the retry reused the first blend instead of checking it again
+    k0 = int(np.argmin(np.abs(traj.q - q_line[0]).max(axis=1)))
+    k1 = int(np.argmin(np.abs(traj.q - q_line[-1]).max(axis=1)))
+    assert np.abs(traj.qd[k0]).max() > 0.1  # still entering the line at speed
+    assert np.abs(traj.qd[k1]).max() < 1e-9  # and resting before the blocked transfer
+    _limits().check_trajectory(traj.t, traj.q)
+
+
 def _box_plan(timing: TimingOptions) -> tuple[dict, CellConfig]:
     cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
     part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.kinematics.arm import ArmModel
-from normpos_grasp.planning.timing import joint_motion_s
+from normpos_grasp.planning.timing import joint_motion_s, rest_to_rest_s
 from normpos_grasp.records.plan import Evaluation
 from normpos_grasp.records.tool import ToolModel, ToolShape
 from normpos_grasp.typing import FloatArray
@@ -156,15 +156,20 @@ def ranked_place_configs(
     every reachable branch (2 pi copy nearest `q_from`) of every pose in `poses`, best first: by estimated joint
     motion time from `q_from` (`timing.joint_motion_s` within `caps`) plus the summed joint change / RAD_PER_S;
     without caps by the summed joint change alone (the nearest branch)."""
+    if not poses:
+        return []
+    pres = np.stack(poses)
+    pres[:, :3, 3] -= pres[:, :3, 2] * approach_m
+    # one IK batch for every pose; the costs of all reachable branches in one pass (elementwise: the same floats as
+    # pose by pose and branch by branch)
+    q_all, ok_all = arm.ik(pres @ tcp_from_flange, q_from)
+    rows, branches = np.nonzero(ok_all)
+    q_reach = q_all[rows, branches]  # (M, 6)
+    change = [float(np.abs(q - q_from).sum()) for q in q_reach]
+    motion = np.max(rest_to_rest_s(q_reach - q_from, *caps), axis=1) if caps is not None and len(q_reach) else None
     out: list[tuple[float, int, FloatArray, FloatArray, FloatArray, int]] = []
-    for i, pose in enumerate(poses):
-        pre = pose.copy()
-        pre[:3, 3] -= pose[:3, 2] * approach_m
-        q, ok = arm.ik(pre @ tcp_from_flange, q_from)
-        for b in np.flatnonzero(ok[0]):
-            cost = float(np.abs(q[0, b] - q_from).sum())
-            if caps is not None:
-                cost = joint_motion_s(q_from, q[0, b], caps) + cost / RAD_PER_S
-            out.append((cost, i, pose, pre, q[0, b], int(b)))
+    for m, (i, b) in enumerate(zip(rows, branches, strict=True)):
+        cost = change[m] if motion is None else float(motion[m]) + change[m] / RAD_PER_S
+        out.append((cost, int(i), poses[int(i)], pres[int(i)], q_reach[m], int(b)))
     out.sort(key=lambda r: (r[0], r[1]))
     return [(pose, pre, q, b) for _, _, pose, pre, q, b in out]

@@ -408,8 +408,9 @@ def time_path(
                 speed[k] = la.v_max
             elif lb is not None and a.tcp is None and a.free is not None:
                 speed[k] = lb.v_max
+    done: dict[tuple[int, float, float], tuple[str, Any, Any]] = {}  # profiles found, by piece and passing speeds
     for _ in range(4 * n + 8):
-        profiles, retry = _profiles(pieces, lines, speed, caps, lower, upper, opts)
+        profiles, retry = _profiles(pieces, lines, speed, caps, lower, upper, opts, done)
         if not retry:
             break
     else:
@@ -440,14 +441,25 @@ def _profiles(
     lower: FloatArray,
     upper: FloatArray,
     opts: TimingOptions,
+    done: dict[tuple[int, float, float], tuple[str, Any, Any]] | None = None,
 ) -> tuple[list[tuple[str, Any, Any]], bool]:
     """One profile per piece for the passing speeds `speed` (lowered in place where a piece cannot take them);
-    returns (profiles, retry): retry is True when a speed was lowered and the profiles must be recomputed."""
+    returns (profiles, retry): retry is True when a speed was lowered and the profiles must be recomputed.
+
+    `done` keeps the profiles found by piece index and passing speeds (in, out) across the retries of one path: a
+    piece whose speeds a retry left as they were gets the same profile (and blend check) without computing it again.
+    Only found profiles are kept; a piece that fails is recomputed, and fails the same way."""
     out: list[tuple[str, Any, Any]] = []
     n = len(pieces)
+    done = {} if done is None else done
     for k, p in enumerate(pieces):
-        v_in = speed[k - 1] if k > 0 else 0.0
-        v_out = speed[k]
+        v_in = float(speed[k - 1]) if k > 0 else 0.0
+        v_out = float(speed[k])
+        key = (k, v_in, v_out)
+        found = done.get(key)
+        if found is not None:
+            out.append(found)
+            continue
         line = lines.get(k)
         if line is not None:
             traj = _profile_1d(line.length, v_in, v_out, line.v_max, line.a_max, line.j_max)
@@ -456,7 +468,8 @@ def _profiles(
                     speed[k - 1] = 0.0 if v_in < 1e-3 else 0.6 * v_in
                 speed[k] = 0.0 if v_out < 1e-3 else 0.6 * v_out
                 return out, True
-            out.append(("line", traj, line))
+            done[key] = ("line", traj, line)
+            out.append(done[key])
             continue
         a, b = p.points[0], p.points[-1]  # a joint edge (or a line without TCP travel)
         if v_in == 0.0 and v_out == 0.0:  # followed exactly: a profile of s in [0, 1], q = a + s (b - a)
@@ -464,7 +477,8 @@ def _profiles(
             moving = d > 1e-15
             lim = [[float(np.min(c[moving] / d[moving]))] for c in caps]
             traj = _ruckig(([0.0], [0.0], [0.0]), ([1.0], [0.0], [0.0]), (lim[0], lim[1], lim[2]))
-            out.append(("edge", traj, (a, b)))
+            done[key] = ("edge", traj, (a, b))
+            out.append(done[key])
             continue
         start = lines[k - 1].joint_state(True, v_in) if v_in > 0.0 else (a, np.zeros(6), np.zeros(6))
         goal = lines[k + 1].joint_state(False, v_out) if v_out > 0.0 else (b, np.zeros(6), np.zeros(6))
@@ -479,7 +493,8 @@ def _profiles(
             if k < n - 1:
                 speed[k] = 0.0
             return out, True
-        out.append(("joints", traj, (a, b)))
+        done[key] = ("joints", traj, (a, b))
+        out.append(done[key])
     return out, False
 
 
