@@ -4,7 +4,8 @@
   (`templates.warmup`);
 - the compiled one-pose inverse kinematics (`kinematics.analytic_ik`, numba, cached on disk), which the planner and
   the loopback controller call;
-- the compiled box tests of the planner's cell screen (`collision.obb`, numba, cached on disk).
+- the compiled box tests of the planner's cell screen (`collision.obb`) and its bounding-sphere proofs
+  (`collision.spheres`), numba, cached on disk.
 
     python -m normpos_grasp.warmup
 """
@@ -17,6 +18,7 @@ import time
 import numpy as np
 
 from normpos_grasp.collision.obb import aligned_box_hits, obb_overlap_pairs
+from normpos_grasp.collision.spheres import spheres_apart, spheres_off_boxes
 from normpos_grasp.kinematics.robot import Robot
 from normpos_grasp.kinematics.ur_params import ur_params
 from normpos_grasp.templates.warmup import prepare_builtin, warm_up
@@ -37,13 +39,21 @@ def warm_up_kinematics() -> float:
 
 
 def warm_up_collision() -> float:
-    """Run the compiled box-pair test once so it is built and cached; returns the seconds it took."""
+    """Run the compiled box-pair tests and sphere proofs once so they are built and cached; returns the seconds it
+    took."""
     t0 = time.perf_counter()
     eye = np.eye(3)[None]
     if not obb_overlap_pairs(np.zeros((1, 3)), eye, np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
         raise RuntimeError("box test warm-up: two boxes at one centre reported apart")
     if not aligned_box_hits(np.eye(4)[None], np.ones((1, 3)), np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
         raise RuntimeError("box screen warm-up: two boxes at one centre reported apart")
+    centre = np.zeros((1, 1, 3))
+    if spheres_off_boxes(centre, np.ones((1, 1)), -np.ones((1, 3)), np.ones((1, 3)), np.zeros(1, dtype=bool), -1)[0]:
+        raise RuntimeError("sphere proof warm-up: a sphere inside a box reported clear")
+    if spheres_apart(
+        centre, np.ones(1), np.zeros((1, 1), dtype=bool), np.zeros(1, dtype=np.int64), centre, np.ones((1, 1))
+    )[0]:
+        raise RuntimeError("sphere proof warm-up: two spheres at one centre reported apart")
     return time.perf_counter() - t0
 
 

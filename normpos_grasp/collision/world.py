@@ -22,6 +22,7 @@ import fcl
 import numpy as np
 
 from normpos_grasp.collision.obb import aligned_box_hits, obb_overlap_pairs
+from normpos_grasp.collision.spheres import spheres_apart, spheres_off_boxes
 from normpos_grasp.errors import InputError
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, IntArray
 
@@ -711,33 +712,17 @@ class CollisionWorld:
         radii = np.broadcast_to(np.concatenate(movers_r), (k, centres.shape[1])).copy()  # (K, M)
         if held_radii is not None:
             radii[:, -1] = held_radii
-        clear = np.ones(k, dtype=bool)
-        if len(phase.lo):
-            # only elements whose AABB meets the box around all of a configuration's spheres (1 nm of slack) can
-            # touch one of them: the sphere tests run on those (configuration, element) pairs
-            box_lo = (centres - radii[..., None]).min(axis=1) - 1e-9  # (K, 3)
-            box_hi = (centres + radii[..., None]).max(axis=1) + 1e-9
-            pairs = np.all(phase.lo[None] <= box_hi[:, None], axis=2) & np.all(
-                phase.hi[None] >= box_lo[:, None], axis=2
-            )
-            if held_rows is not None and held_name in phase.index:
-                pairs[np.asarray(held_rows, dtype=bool).reshape(k), phase.index[held_name]] = False
-            kk, ee = np.nonzero(pairs)
-            if len(kk):
-                c = centres[kk]  # (P, M, 3)
-                gap = np.minimum(np.maximum(c, phase.lo[ee][:, None]), phase.hi[ee][:, None]) - c
-                d2 = np.einsum("pmi,pmi->pm", gap, gap)
-                clear[kk[np.any(d2 <= radii[kk] * radii[kk], axis=1)]] = False
+        # the spheres against the enabled elements' boxes, then the arm's spheres against each other and against the
+        # tool's and the held object's (collision.spheres: compiled, the numpy passes' arithmetic)
+        held_index = -1
+        if held_rows is not None and held_name in phase.index:
+            held_index = phase.index[held_name]
+        rows_held = np.zeros(k, dtype=bool) if held_rows is None else np.asarray(held_rows, dtype=bool).reshape(k)
+        clear = spheres_off_boxes(centres, radii, phase.lo, phase.hi, rows_held, held_index)
         r = self._arm.radii
-        d = np.linalg.norm(arm_c[:, :, None] - arm_c[:, None], axis=-1) - (r[:, None] + r[None])
-        clear &= ~np.any((d <= 0) & self._arm.pair_mask[None], axis=(1, 2))
-        low = self._arm.low_links
         extra_c = np.concatenate(movers_c[1:], axis=1)
         extra_r = radii[:, len(r) - 1 :]  # (K, tool and held)
-        d = np.linalg.norm(arm_c[:, low][:, :, None] - extra_c[:, None], axis=-1) - (
-            r[low][None, :, None] + extra_r[:, None]
-        )
-        clear &= ~np.any(d <= 0, axis=(1, 2))
+        clear &= spheres_apart(arm_c, r, self._arm.pair_mask, self._arm.low_links, extra_c, extra_r)
         return clear
 
     def which(self, world_from_tcp: ArrayLike, opening_m: float = 0.0) -> list[str]:
