@@ -123,9 +123,12 @@ def _hexagon(across_flats: float, per_side: int) -> np.ndarray:
 
 
 def _dihedral(n: int) -> Symmetry:
-    """Rotations by 360/n about z and half turns about in-plane axes (a prism of an n-gon), identity excluded."""
+    """Rotations by 360/n about z and half turns about the n in-plane axes 180/n apart (a prism of an n-gon),
+    identity excluded. Rz(a) Rx(pi) is the half turn about the in-plane axis at a / 2: a runs over 360 k / n (before
+    this fix it ran over 180 k / n, so for the hexagon three half turns were none of the prism's and three were
+    missing: the fit then called a true flip of a nut a rival 13 mm away and rejected the nut as ambiguous)."""
     out = [_rot("z", 360.0 * k / n) for k in range(1, n)]
-    out += [_rot("z", 180.0 * k / n) @ _rot("x", 180.0) for k in range(n)]
+    out += [_rot("z", 360.0 * k / n) @ _rot("x", 180.0) for k in range(n)]
     return Symmetry(discrete=tuple(out))
 
 
