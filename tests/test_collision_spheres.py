@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from normpos_grasp.collision.spheres import spheres_apart, spheres_off_boxes
+from normpos_grasp.collision.spheres import spheres_apart, spheres_near_boxes, spheres_off_boxes
 from normpos_grasp.typing import BoolArray, FloatArray
 
 
@@ -27,6 +27,14 @@ def _off_boxes_numpy(
         d2 = np.einsum("pmi,pmi->pm", gap, gap)
         clear[kk[np.any(d2 <= radii[kk] * radii[kk], axis=1)]] = False
     return clear
+
+
+def _near_numpy(centres: FloatArray, radii: FloatArray, lo: FloatArray, hi: FloatArray) -> BoolArray:
+    """The numpy pass CollisionWorld.near ran before (the reference)."""
+    c = centres[:, None, :]
+    gap = np.minimum(np.maximum(c, lo[None]), hi[None]) - c
+    d2 = np.einsum("kni,kni->kn", gap, gap)
+    return np.any(d2 <= (radii * radii)[:, None], axis=1)
 
 
 def _apart_numpy(
@@ -115,5 +123,30 @@ def test_arm_spheres_apart_match_the_numpy_pass_at_random_and_at_contact() -> No
             want = _apart_numpy(arm_c, far, none, np.array([0]), extra_c, extra_r)
             got = spheres_apart(arm_c, far, none, np.array([0]), extra_c, extra_r)
             assert np.array_equal(got, want)
+            verdicts.add(bool(want[0]))
+    assert verdicts == {True, False}
+
+
+def test_spheres_near_boxes_match_the_numpy_pass_at_random_and_at_contact() -> None:
+    rng = np.random.default_rng(14)
+    lo = rng.uniform(-0.5, 0.3, size=(16, 3))
+    hi = lo + rng.uniform(0.01, 0.3, size=(16, 3))
+    for trial in range(30):
+        k = int(rng.integers(1, 12))
+        centres = rng.uniform(-0.7, 0.7, size=(k, 3))
+        radii = rng.uniform(0.0, 0.15, size=k)
+        assert np.array_equal(spheres_near_boxes(centres, radii, lo, hi), _near_numpy(centres, radii, lo, hi)), trial
+    one_lo, one_hi = lo[:1], hi[:1]
+    verdicts = set()
+    for _ in range(400):
+        c = rng.uniform(-0.7, 0.7, size=(1, 3))
+        gap = np.minimum(np.maximum(c[:, None], one_lo[None]), one_hi[None]) - c[:, None]
+        d2 = float(np.einsum("kni,kni->kn", gap, gap)[0, 0])
+        if d2 == 0.0:
+            continue
+        for inside in (False, True):
+            radii = np.array([_touching_radius(d2, inside)])
+            want = _near_numpy(c, radii, one_lo, one_hi)
+            assert np.array_equal(spheres_near_boxes(c, radii, one_lo, one_hi), want)
             verdicts.add(bool(want[0]))
     assert verdicts == {True, False}

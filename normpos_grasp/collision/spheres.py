@@ -1,9 +1,9 @@
-"""Compiled (numba, nogil) bounding-sphere proofs of `CollisionWorld.configs_clear`: the movers' spheres of each
-configuration against the enabled elements' axis-aligned boxes, and the arm's spheres against each other and
-against the tool's and the held object's. They replace numpy passes of ~20 calls per batch with the same arithmetic
-in the same order (numpy's `einsum('pmi,pmi->pm')` adds the squares of x and z, then y; `linalg.norm` adds x, y,
-then z), so the verdicts are the numpy passes' bit for bit (tests/test_collision_spheres.py keeps those as the
-reference)."""
+"""Compiled (numba, nogil) bounding-sphere proofs of `CollisionWorld.configs_clear` (the movers' spheres of each
+configuration against the enabled elements' axis-aligned boxes, the arm's spheres against each other and against the
+tool's and the held object's) and the per-shape broad phase of `CollisionWorld.near`. They replace numpy passes of
+~20 calls per batch with the same arithmetic in the same order (numpy's `einsum('pmi,pmi->pm')` adds the squares of
+x and z, then y; `linalg.norm` adds x, y, then z), so the verdicts are the numpy passes' bit for bit
+(tests/test_collision_spheres.py keeps those as the reference)."""
 
 from __future__ import annotations
 
@@ -29,6 +29,20 @@ def spheres_off_boxes(
             np.ascontiguousarray(hi, dtype=np.float64).reshape(-1, 3),
             np.ascontiguousarray(held_rows, dtype=np.bool_),
             int(held_index),
+        ),
+        dtype=bool,
+    )
+
+
+def spheres_near_boxes(centres: FloatArray, radii: FloatArray, lo: FloatArray, hi: FloatArray) -> BoolArray:
+    """(K,) bool: True where sphere k (centres (K, 3), radii (K,), m) touches some box (lo, hi (E, 3), m): the
+    per-shape broad phase of `CollisionWorld.near`."""
+    return np.asarray(
+        _near_boxes(
+            np.ascontiguousarray(centres, dtype=np.float64).reshape(-1, 3),
+            np.ascontiguousarray(radii, dtype=np.float64).reshape(-1),
+            np.ascontiguousarray(lo, dtype=np.float64).reshape(-1, 3),
+            np.ascontiguousarray(hi, dtype=np.float64).reshape(-1, 3),
         ),
         dtype=bool,
     )
@@ -94,6 +108,21 @@ def _off_boxes(centres, radii, lo, hi, held_rows, held_index):  # type: ignore[n
                     out[k] = False
                     break
             if not out[k]:
+                break
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _near_boxes(centres, radii, lo, hi):  # type: ignore[no-untyped-def]
+    out = np.zeros(centres.shape[0], dtype=np.bool_)
+    for k in range(centres.shape[0]):
+        rr = radii[k] * radii[k]
+        for e in range(lo.shape[0]):
+            g0 = min(max(centres[k, 0], lo[e, 0]), hi[e, 0]) - centres[k, 0]
+            g1 = min(max(centres[k, 1], lo[e, 1]), hi[e, 1]) - centres[k, 1]
+            g2 = min(max(centres[k, 2], lo[e, 2]), hi[e, 2]) - centres[k, 2]
+            if (g0 * g0 + g2 * g2) + g1 * g1 <= rr:  # einsum's order
+                out[k] = True
                 break
     return out
 

@@ -22,7 +22,7 @@ import fcl
 import numpy as np
 
 from normpos_grasp.collision.obb import aligned_box_hits, obb_overlap_pairs
-from normpos_grasp.collision.spheres import spheres_apart, spheres_off_boxes
+from normpos_grasp.collision.spheres import spheres_apart, spheres_near_boxes, spheres_off_boxes
 from normpos_grasp.errors import InputError
 from normpos_grasp.typing import ArrayLike, BoolArray, FloatArray, IntArray
 
@@ -473,14 +473,11 @@ class CollisionWorld:
 
     def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:
         """(K,) bool: which bounding spheres (centres (K, 3), radii (K,) m) touch some enabled element's AABB.
-        A cheap numpy broad phase in front of fcl: shapes far from everything skip the fcl call entirely."""
+        A cheap broad phase in front of fcl (`collision.spheres`): shapes far from everything skip the fcl call."""
         phase = self._phase()
         if len(phase.lo) == 0:
             return np.zeros(len(centres), dtype=bool)
-        c = centres[:, None, :]
-        gap = np.minimum(np.maximum(c, phase.lo[None]), phase.hi[None]) - c  # to the box's nearest point
-        d2 = np.einsum("kni,kni->kn", gap, gap)
-        return np.any(d2 <= (radii * radii)[:, None], axis=1)
+        return spheres_near_boxes(centres, radii, phase.lo, phase.hi)  # compiled, the numpy pass's arithmetic
 
     def _query(self, obj: fcl.CollisionObject, skip: Iterable[str] = ()) -> str:
         """Category hit by `obj` ('' when free), checking categories in order."""
