@@ -471,7 +471,7 @@ class CollisionWorld:
             hits[rows[ii[over]]] = True
         return hits
 
-    def near(self, centres: FloatArray, radii: FloatArray) -> FloatArray:
+    def near(self, centres: FloatArray, radii: FloatArray) -> BoolArray:
         """(K,) bool: which bounding spheres (centres (K, 3), radii (K,) m) touch some enabled element's AABB.
         A cheap broad phase in front of fcl (`collision.spheres`): shapes far from everything skip the fcl call."""
         phase = self._phase()
