@@ -230,6 +230,7 @@ class CollisionWorld:
         self._arm: _ArmShapes | None = None
         self._tools: dict[str, _ToolShapes] = {}  # 'exact', 'inflated', 'margin'
         self._tool_moves: FloatArray = np.zeros(0)  # (S,) -1 / 0 / +1: how each shape moves with the opening
+        self._tool_moving = False  # some shape moves with the opening
         self._tool_finger_half: FloatArray = np.zeros(0)  # (S,) half thickness of the moving fingers, m
         self._tool_centres: FloatArray = np.zeros((0, 3))  # where the exact tool was last posed, m
         self._last_opening = 0.0  # m
@@ -415,6 +416,7 @@ class CollisionWorld:
             for grown in [_grown_tool(tool, by_m)]
         }
         self._tool_moves = np.array([float(s.moves) for s in tool.shapes])
+        self._tool_moving = bool(self._tool_moves.any())
         self._tool_finger_half = np.array([s.size[0] / 2.0 if s.moves else 0.0 for s in tool.shapes])
 
     # -- queries ------------------------------------------------------------------------------------------------
@@ -516,20 +518,19 @@ class CollisionWorld:
         grown = inflated or margin
         if not grown:
             self._last_opening = opening_m
-        if self._tool_moves.any():
+        if self._tool_moving:
             local = local.copy()
             local[:, 0, 3] += self._tool_moves * (opening_m / 2.0 + self._tool_finger_half)
         poses = world_from_tcp @ local
         centres = poses[:, :3, 3]
+        rotations = poses[:, :3, :3]
         if not grown:
             self._tool_centres = centres
-        keep = self.near(centres, radii) if only_near else np.ones(len(poses), dtype=bool)
-        out = []
-        for obj, pose, k in zip(objs, poses, keep, strict=True):
-            obj.setTransform(_tf(pose))
-            if k:
-                out.append(obj)
-        return out
+        for i, obj in enumerate(objs):
+            obj.setTransform(fcl.Transform(rotations[i], centres[i]))
+        if not only_near:
+            return list(objs)
+        return [obj for obj, k in zip(objs, self.near(centres, radii).tolist(), strict=True) if k]
 
     def check_tool(
         self,
