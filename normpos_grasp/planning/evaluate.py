@@ -182,7 +182,7 @@ def evaluate_candidates(
     poses = five_poses_batch(g, np.array([c.approach_m for c in candidates]), entry_z, lift_m, below)
 
     def reject(i: int, reason: str, pose: str = "") -> None:
-        verdict[i] = Evaluation(candidates[i], False, reason, pose, poses[i])
+        verdict[i] = Evaluation.rejected(candidates[i], reason, pose, poses[i])
 
     # 1. vectorised screens
     if tool.kind == "parallel" and opts.opening_slack_m > 0:
@@ -300,7 +300,7 @@ def evaluate_candidates(
         feasible.append(ev)
         per_target[c.target] += 1
     final = [
-        v if v is not None else Evaluation(candidates[i], False, "not_evaluated", "", poses[i], prior=prior[i])
+        v if v is not None else Evaluation.rejected(candidates[i], "not_evaluated", "", poses[i], prior=prior[i])
         for i, v in enumerate(verdict)
     ]
     counts = Counter(v.reason for v in final if not v.feasible)
@@ -459,14 +459,14 @@ def _tool_collisions(
         if hit is None and opts.noise_margin:  # neighbours (not the cell: its boxes are exact) with the noise margin
             hit = world.check_tool(poses[2], c.opening_m, skip=("cell",), margin=True)
     if hit is not None:
-        return Evaluation(c, False, hit.reason, "grasp", poses)
+        return Evaluation.rejected(c, hit.reason, "grasp", poses)
     a = poses[2][:3, 2]
     backed = poses[2].copy()
     backed[:3, 3] -= a * opts.contact_backoff_m
     for pose_name, pose in (("grasp", backed), ("pre_grasp", poses[1]), ("entry", poses[0])):
         hit = world.check_tool(pose, c.opening_m)
         if hit is not None:
-            return Evaluation(c, False, hit.reason, pose_name, poses)
+            return Evaluation.rejected(c, hit.reason, pose_name, poses)
     return None
 
 

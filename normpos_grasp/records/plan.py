@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +50,25 @@ class Evaluation:
     branch: int = -1
     score: float = -np.inf
     prior: float = 0.0
+
+    @classmethod
+    def rejected(
+        cls, candidate: GraspCandidate, reason: str, pose: str, world_from_tcp: FloatArray | None, prior: float = 0.0
+    ) -> Evaluation:
+        """`Evaluation(candidate, False, reason, pose, world_from_tcp, prior=prior)` (every other field its default),
+        built without the frozen dataclass's per-field `object.__setattr__`: about 0.6 us instead of 2.6, for the
+        evaluator's ~1,400 rejected candidates per 10-part bin."""
+        ev = object.__new__(cls)
+        state = dict(_EVALUATION_DEFAULTS, candidate=candidate, reason=reason, pose=pose, world_from_tcp=world_from_tcp)
+        state["prior"] = prior
+        object.__setattr__(ev, "__dict__", state)
+        return ev
+
+
+#: every field of Evaluation in order with its default (candidate None, feasible False): what `Evaluation.rejected`
+#: starts from
+_EVALUATION_DEFAULTS: dict[str, Any] = {f.name: f.default for f in fields(Evaluation)}
+_EVALUATION_DEFAULTS.update(candidate=None, feasible=False)
 
 
 @dataclass(frozen=True, eq=False)
