@@ -39,7 +39,7 @@ from normpos_grasp.records.normpos import NormPosition
 from normpos_grasp.records.template import Template, TemplateFit
 from normpos_grasp.templates import kernels, ppf
 from normpos_grasp.templates.edges import refine_turn, symmetry_axis
-from normpos_grasp.templates.fit import FitContext, FitOptions, estimate_normals, fit_template_from
+from normpos_grasp.templates.fit import FitContext, FitOptions, estimate_normals, fit_best, fit_template_from
 from normpos_grasp.templates.icp import icp
 from normpos_grasp.templates.prepared import PreparedTemplate, prepare
 from normpos_grasp.typing import BoolArray, FloatArray, IntArray
@@ -148,6 +148,8 @@ class CadOptions:
         about its axis to the best outline evidence (`templates.edges.refine_turn`).
     refine_region / refine_min_gain: then turn and slide accepted poses to the best evidence against the unclaimed
         ROI (`CadDetector._refine_region`), kept when it gains more than refine_min_gain x the visible samples.
+    compete: judge every accepted fit against the other templates on the same measured pixels
+        (`CadDetector._outcompeted`); a template explaining them better takes its place.
     """
 
     plane_band_m: float = 0.004
@@ -182,6 +184,7 @@ class CadOptions:
     refine_turn: bool = True
     refine_region: bool = True
     refine_min_gain: float = 0.005
+    compete: bool = True
 
     def __post_init__(self) -> None:
         if not (self.ref_every >= 1 and self.n_peaks >= 1 and self.hypotheses >= 1 and self.max_rounds >= 1):
@@ -339,6 +342,19 @@ class CadDetector:
                 if self._sinks(hy.prep, cfo):
                     rejected.append((hy.template.name, c_hy))
                     continue
+                if opts.compete:  # another template explaining the same pixels better takes its place
+                    beaten, alt = self._outcompeted(res, nps[0], templates, fopts, ctx)
+                    if beaten:
+                        if self.trace is not None:
+                            self.trace.append(("outcompeted", hy.template.name, cfo[None]))
+                        rejected.append((hy.template.name, c_hy))
+                        if alt is None or alt.score < opts.min_score:
+                            continue
+                        acfo = alt.frame_from_object if wfc is None else invert_pose(wfc) @ alt.frame_from_object
+                        hy = replace(hy, template=alt.template, prep=preps[alt.template.name], camera_from_object=acfo)
+                        res, cfo = alt, acfo
+                        if self._sinks(hy.prep, cfo):
+                            continue
                 if opts.refine_turn:  # the turn inside a symmetric family, on the outline (templates.edges)
                     z = float(cfo[2, 3])
                     tol = opts.explain_tol_m + 2.5 * opts.noise_per_m2 * z * z
@@ -366,8 +382,8 @@ class CadDetector:
                     self.trace.append(("accepted", hy.template.name, cfo[None]))
                 new += 1
             t_verify += time.perf_counter() - t1
-            if new == 0:
-                break
+            if new == 0 and (rnd > 0 or not hints):
+                break  # (a hinted first round that accepts nothing, hints of a wrong label or place, is not the end)
         # the greedy selection is done: every accepted pose judged against all the others (a neighbour accepted in
         # a later round explains the surface beside it)
         t1 = time.perf_counter()
@@ -577,6 +593,32 @@ class CadDetector:
             if len(px) >= opts.min_pixels:
                 out.append(_Hyp(template, prep, cfo, px, float(v), quality))
         return out
+
+    def _outcompeted(
+        self,
+        fit: TemplateFit,
+        measured: NormPosition,
+        templates: Sequence[Template],
+        fopts: FitOptions,
+        ctx: FitContext,
+    ) -> tuple[bool, TemplateFit | None]:
+        """(whether another template explains the `measured` pixels of an accepted `fit` better, that template's
+        fit when it is accepted): competing templates judged on the same evidence (issue 16 item 2). The other
+        templates whose size suits the measurement compete on it as on a model-free segment (`templates.fit.
+        fit_best`, label ''): their own hypotheses, refinement, scores and free-space, coverage and rival tests.
+        `fit` is beaten when their best scores above it and is accepted, or is rejected only for an equally good
+        second template (then neither wins). A template posed on part of a larger part (a nut on a puck's top
+        face) fits the pixels it explains, but the part's own template fits them better."""
+        others = [t for t in templates if t.name != fit.template.name]
+        if not others:
+            return False, None
+        alt = fit_best(replace(measured, label=""), others, fopts, ctx)
+        # 'ambiguous class': two other templates explain the pixels better than `fit` and about equally: `fit` is
+        # beaten, but neither of them wins
+        beaten = alt.accepted or alt.reason.startswith("ambiguous class")
+        if not beaten or alt.score <= fit.score:
+            return False, None
+        return True, alt if alt.accepted else None
 
     def _refine_region(
         self, template: Template, prep: PreparedTemplate, cfo: FloatArray, inside: BoolArray
