@@ -8,6 +8,7 @@ input resolution (letterboxed exactly as `OnnxSegmenter` does at run time).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import DatasetError
 from normpos_grasp.perception.onnx_segmenter import DepthChannelSpec, preprocess
 from normpos_grasp.records.instance import Instance
+from normpos_grasp.records.template import Template
 from normpos_grasp.typing import FloatArray
 
 logger = logging.getLogger(__name__)
@@ -99,17 +101,23 @@ def pile_samples(seed: int, views: int = 2, sensor: str = "d435") -> list[Sample
     )
 
 
-def cell_samples(cell: CellConfig, seed: int, sensor: str = "d435") -> list[Sample]:
+def cell_samples(
+    cell: CellConfig,
+    seed: int,
+    sensor: str = "d435",
+    library: list[Template] | None = None,
+    parts: Sequence[str] = (),
+) -> list[Sample]:
     """Two views of a bin of a cell (`normpos_grasp.sim.cell_scene`), seen by the cell's own camera as in the demo:
-    2-14 parts (drawn from `seed`) dropped into the cell's bin, then the same bin with some parts taken out (as
-    after picks)."""
+    2-14 parts (drawn from `seed`; from `parts` of `library` when given, else the built-in parts) dropped into the
+    cell's bin, then the same bin with some parts taken out (as after picks)."""
     from normpos_grasp.sim.cell_scene import cell_camera, compose_cell_scene, remove_parts
     from normpos_grasp.sim.dataset import render_frame
     from normpos_grasp.sim.render import make_renderer
     from normpos_grasp.sim.sensor import sensor_preset
 
     rng = np.random.default_rng(seed)
-    layout = compose_cell_scene(cell, int(rng.integers(2, 15)), seed)
+    layout = compose_cell_scene(cell, int(rng.integers(2, 15)), seed, library, parts)
     camera = cell_camera(cell, sensor)
     noise = sensor_preset(sensor)
     out: list[Sample] = []
@@ -150,10 +158,14 @@ def frame_samples(seed: int, sensor: str = "d435", resolution: tuple[int, int] =
 
 
 def pack_sample(
-    sample: Sample, input_hw: tuple[int, int], depth_spec: DepthChannelSpec, min_pixels: int = 100
+    sample: Sample,
+    input_hw: tuple[int, int],
+    depth_spec: DepthChannelSpec,
+    min_pixels: int = 100,
+    class_names: Sequence[str] = CLASS_NAMES,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(x (4, H, W) float16, masks (N, H/4, W/4) bool, boxes (N, 4) float32 xyxy input pixels, classes (N,) int64)
-    for instances with at least `min_pixels` visible pixels."""
+    """(x (4, H, W) float16, masks (N, H/4, W/4) bool, boxes (N, 4) float32 xyxy input pixels, classes (N,) int64:
+    index of the label in `class_names`) for instances with at least `min_pixels` visible pixels."""
     f = sample.frame
     x, lb = preprocess(f.rgb, f.depth_m, input_hw, depth_spec)
     mh, mw = input_hw[0] // 4, input_hw[1] // 4
@@ -170,7 +182,7 @@ def pack_sample(
         small = cv2.resize(canvas, (mw, mh), interpolation=cv2.INTER_AREA) > 0.5
         masks.append(small)
         boxes.append(box)
-        classes.append(CLASS_NAMES.index(inst.label))
+        classes.append(list(class_names).index(inst.label))
     n = len(masks)
     return (
         x[0].astype(np.float16),
@@ -208,3 +220,38 @@ def read_shards(folder: Path) -> tuple[np.ndarray, list[np.ndarray], list[np.nda
             bs.append(d["boxes"][off[i] : off[i + 1]])
             cs.append(d["classes"][off[i] : off[i + 1]])
     return np.concatenate(xs), ms, bs, cs
+
+
+def assign_cells(boxes: np.ndarray, masks: np.ndarray, centres: np.ndarray, stride: int) -> np.ndarray:
+    """The part each head cell learns, (A,) int64 (-1 none): cells whose centre (`centres` (A, 2), input pixels)
+    lies inside the part's mask (`masks` (n, H/4, W/4)) and near its box centre (`boxes` (n, 4) xyxy), the smallest
+    part winning; every part gets at least the cell nearest its mask centroid."""
+    a = len(centres)
+    assign = np.full(a, -1, np.int64)
+    best_area = np.full(a, np.inf)
+    n = len(boxes)
+    mh, mw = masks.shape[1:] if n else (1, 1)
+    cx = np.clip((centres[:, 0] / 4).astype(int), 0, mw - 1)
+    cy = np.clip((centres[:, 1] / 4).astype(int), 0, mh - 1)
+    for g in range(n):
+        x1, y1, x2, y2 = boxes[g]
+        bw, bh = x2 - x1, y2 - y1
+        gx, gy = (x1 + x2) / 2, (y1 + y2) / 2
+        inside = masks[g][cy, cx]
+        near = (np.abs(centres[:, 0] - gx) < max(stride, 0.35 * bw)) & (
+            np.abs(centres[:, 1] - gy) < max(stride, 0.35 * bh)
+        )
+        cand = inside & near
+        if not cand.any():
+            ys, xs = np.nonzero(masks[g])
+            if len(ys) == 0:
+                continue
+            mx, my = (xs.mean() + 0.5) * 4, (ys.mean() + 0.5) * 4
+            d = (centres[:, 0] - mx) ** 2 + (centres[:, 1] - my) ** 2
+            cand = np.zeros(a, bool)
+            cand[int(np.argmin(d))] = True
+        area = float(masks[g].sum())
+        take = cand & (area < best_area)
+        assign[take] = g
+        best_area[take] = area
+    return assign

@@ -25,6 +25,7 @@ from normpos_grasp.perception.onnx_segmenter import CONF_METADATA_KEY, DEPTH_MET
 from normpos_grasp.training.data import (
     CLASS_NAMES,
     Sample,
+    assign_cells,
     pack_sample,
     read_shards,
     synth_samples,
@@ -117,41 +118,6 @@ def generate_sample_shards(
             write_shard(path, [pack_sample(s, input_hw, spec) for seed in range(start, stop) for s in make(seed)])
         if progress is not None:
             progress(stop - start)
-
-
-def _targets(
-    torch: object, boxes: np.ndarray, masks: np.ndarray, centres: np.ndarray, stride: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per cell the assigned GT index (-1 none): (A,) int64; and per GT a flag whether it got a cell (n,) bool."""
-    a = len(centres)
-    assign = np.full(a, -1, np.int64)
-    best_area = np.full(a, np.inf)
-    n = len(boxes)
-    mh, mw = masks.shape[1:] if n else (1, 1)
-    cx = np.clip((centres[:, 0] / 4).astype(int), 0, mw - 1)
-    cy = np.clip((centres[:, 1] / 4).astype(int), 0, mh - 1)
-    for g in range(n):
-        x1, y1, x2, y2 = boxes[g]
-        bw, bh = x2 - x1, y2 - y1
-        gx, gy = (x1 + x2) / 2, (y1 + y2) / 2
-        inside = masks[g][cy, cx]
-        near = (np.abs(centres[:, 0] - gx) < max(stride, 0.35 * bw)) & (
-            np.abs(centres[:, 1] - gy) < max(stride, 0.35 * bh)
-        )
-        cand = inside & near
-        if not cand.any():
-            ys, xs = np.nonzero(masks[g])
-            if len(ys) == 0:
-                continue
-            mx, my = (xs.mean() + 0.5) * 4, (ys.mean() + 0.5) * 4
-            d = (centres[:, 0] - mx) ** 2 + (centres[:, 1] - my) ** 2
-            cand = np.zeros(a, bool)
-            cand[int(np.argmin(d))] = True
-        area = float(masks[g].sum())
-        take = cand & (area < best_area)
-        assign[take] = g
-        best_area[take] = area
-    return assign, np.zeros(0, bool)
 
 
 def _giou(p: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -266,7 +232,7 @@ def train(data_dir: Path, out_dir: Path, options: TrainOptions, log: Callable[[s
         loss_mask = torch.zeros(())
         npos = 0
         for j in range(bsz):
-            assign, _ = _targets(torch, tb[j], tm[j], centres, stride)
+            assign = assign_cells(tb[j], tm[j], centres, stride)
             pos = np.flatnonzero(assign >= 0)
             if len(pos) == 0:
                 continue
