@@ -20,7 +20,8 @@
         [--count 8] [--sim-scenes 3] [--sim-count 4] [--seed 9300] [--segmenters gt,model,depth] [--taught DIR]
 
 --taught DIR skips step 1 and uses a library `teach` wrote before (its parts are the new parts); --sim-scenes 0
-skips step 3.
+skips step 3; --model PATH runs 'model' with that ONNX file (a model taught the new parts by `train-segmenter
+--library`, whose learned classes are weak hints: perception.factory.for_library).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=9300)
     ap.add_argument("--segmenters", default="gt,model,depth")
     ap.add_argument("--taught", type=Path, default=None, help="a taught library to use instead of step 1")
+    ap.add_argument("--model", type=Path, default=None, help="the segmentation model for 'model' (default: bundled)")
     args = ap.parse_args()
 
     from normpos_grasp.cell import resolve_cell
@@ -104,7 +106,10 @@ def main() -> None:
     diam = {t.name: prepare(t).diameter for t in library}
     kinds = [k.strip() for k in args.segmenters.split(",") if k.strip()]
     labels = {t.label for t in library}
-    segs = {k: (None if k == "gt" else make_segmenter(k, labels=labels)) for k in kinds}
+    segs = {
+        k: (None if k == "gt" else make_segmenter(k, args.model if k == "model" else None, labels=labels))
+        for k in kinds
+    }
     keys = ("eligible", "correct", "wrong", "accepted", "seg_found", "seg_inst", "seg_ok", "b_eligible", "b_correct")
     tally = {k: dict.fromkeys(keys, 0) for k in kinds}
     t0 = time.perf_counter()

@@ -151,14 +151,19 @@ def _fit_hinted(
     ctx: FitContext,
 ) -> list[TemplateFit]:
     """Fits of class-agnostic instances, in input order: each is fitted as the model's class (its hint) and against
-    the templates the model does not know (`ClassAgnostic.unknown`, label ''); the model's class is a prior: an
-    unknown template must be accepted and explain the points clearly better (the hinted fit below
-    `class_ambiguity_ratio` of its score) to overrule an accepted fit of the hinted class."""
+    the templates the model does not know (`ClassAgnostic.unknown`, label ''), or against the whole library where
+    the hint is itself such a label (a weak class from a head refit); the model's class is a prior: another
+    template must be accepted and explain the points clearly better (the hinted fit below `class_ambiguity_ratio`
+    of its score) to overrule an accepted fit of the hinted class."""
     unknown = segmenter.unknown(templates)
     hinted = [replace(n, label=segmenter.hints.get(n.instance_id, "")) for n in todo]
     first = fit_many([n for n in hinted if n.label], templates, opts.fit, ctx, opts.fit_workers)
     by_hint = {f.instance_id: f for f in first}
-    second = fit_many(list(todo), unknown, opts.fit, ctx, opts.fit_workers) if unknown else []
+    weak = {t.label for t in unknown}
+    plain = [n for n in todo if segmenter.hints.get(n.instance_id, "") not in weak]
+    wide = [n for n in todo if segmenter.hints.get(n.instance_id, "") in weak]  # a weak hint: the whole library
+    second = fit_many(plain, unknown, opts.fit, ctx, opts.fit_workers) if unknown and plain else []
+    second += fit_many(wide, templates, opts.fit, ctx, opts.fit_workers) if wide else []
     by_unknown = {f.instance_id: f for f in second}
     out = []
     for n in todo:

@@ -80,7 +80,7 @@ def choose_segmenter(
         if missing:
             logger.warning("the model does not know the labels %s: using the depth segmenter", missing)
             return choose_segmenter("depth")
-        return SegmenterChoice(model, "model")
+        return SegmenterChoice(for_library(model, labels), "model")
     raise InputError(f"unknown segmenter {kind!r}; choose one of {', '.join(SEGMENTER_KINDS)}")
 
 
@@ -103,18 +103,20 @@ class ClassAgnostic:
         return [replace(i, label="") for i in found]
 
     def unknown(self, templates: Sequence[Template]) -> list[Template]:
-        """The templates whose label the model lacks (taught parts): they compete for every mask."""
-        known = set(getattr(self.model, "class_names", ()))
+        """The templates whose label the model lacks (taught parts) or knows only weakly (`weak_labels`, classes a
+        head refit taught it, `training.head_tune`): they compete for every mask."""
+        known = set(getattr(self.model, "class_names", ())) - set(getattr(self.model, "weak_labels", ()))
         return [t for t in templates if t.label not in known]
 
 
 def for_library(segmenter: Segmenter, labels: Collection[str]) -> Segmenter:
     """`segmenter` as it should run for a library with `labels`: a model (a segmenter with `class_names`) that lacks
-    some of them becomes `ClassAgnostic`; anything else (and a model that knows every label) is returned as it is."""
+    some of them, or has `weak_labels`, becomes `ClassAgnostic`; anything else (and a model that knows every label
+    surely) is returned as it is."""
     names = getattr(segmenter, "class_names", None)
     if names is None or isinstance(segmenter, ClassAgnostic):
         return segmenter
-    missing = sorted(set(labels) - set(names) - {""})
+    missing = sorted((set(labels) - set(names) - {""}) | set(getattr(segmenter, "weak_labels", ())))
     if not missing:
         return segmenter
     logger.info("the model does not know the labels %s: its masks are used class-agnostically", missing)

@@ -38,6 +38,8 @@ BUNDLED_MODEL = Path(__file__).resolve().parents[1] / "models" / "normpos_seg.on
 PAD_VALUE = 114  # letterbox grey, as ultralytics
 DEPTH_METADATA_KEY = "normpos_depth"
 CONF_METADATA_KEY = "normpos_conf_threshold"  # the model's recommended threshold, used when no options are given
+#: class names a head refit taught the model (`training.head_tune`): weak hints, the whole library competes for them
+WEAK_LABELS_METADATA_KEY = "normpos_weak_labels"
 
 
 @dataclass(frozen=True)
@@ -376,6 +378,9 @@ class OnnxSegmenter:
                     f"metadata '{CONF_METADATA_KEY}' is not a number: {meta[CONF_METADATA_KEY]!r}"
                 ) from exc
         self.class_names = self._load_names(class_names, meta, nc)
+        self.weak_labels: tuple[str, ...] = ()
+        if WEAK_LABELS_METADATA_KEY in meta:
+            self.weak_labels = tuple(_parse_names(meta[WEAK_LABELS_METADATA_KEY]))
         self.metadata = dict(meta)
 
     def _load_names(self, class_names: Sequence[str] | None, meta: dict[str, str], nc: int | None) -> list[str]:
