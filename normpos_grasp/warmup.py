@@ -45,7 +45,7 @@ def warm_up_collision() -> float:
     eye = np.eye(3)[None]
     if not obb_overlap_pairs(np.zeros((1, 3)), eye, np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
         raise RuntimeError("box test warm-up: two boxes at one centre reported apart")
-    if not aligned_box_hits(np.eye(4)[None], np.ones((1, 3)), np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
+    if not aligned_box_hits(np.eye(4)[None], np.ones(3), np.zeros((1, 3)), eye, np.ones((1, 3)))[0]:
         raise RuntimeError("box screen warm-up: two boxes at one centre reported apart")
     centre = np.zeros((1, 1, 3))
     if spheres_off_boxes(centre, np.ones((1, 1)), -np.ones((1, 3)), np.ones((1, 3)), np.zeros(1, dtype=bool), -1)[0]:

@@ -166,7 +166,7 @@ def test_compiled_aligned_screen_matches_the_aabb_test_then_the_numpy_pairs() ->
     ii, bb = np.nonzero(np.all(np.abs(world[:, None, :3, 3] - bc[None]) <= bh[None] + ext[:, None] + 1e-9, axis=2))
     expected = np.zeros(n, dtype=bool)
     expected[ii[obb_overlap(world[ii, :3, 3], world[ii, :3, :3], half[None], bc[bb], br[bb], bh[bb])]] = True
-    got = aligned_box_hits(world, ext, half, bc, br, bh)
+    got = aligned_box_hits(world, half, bc, br, bh)  # the AABB extents summed inside, in numpy's order
     assert 0.1 * n < expected.sum() < 0.9 * n
     assert (np.isin(np.arange(n), ii) & ~expected).any()  # some pairs pass the AABB test and still stay apart
     np.testing.assert_array_equal(got, expected)

@@ -29,17 +29,15 @@ def obb_overlap_pairs(
     )
 
 
-def aligned_box_hits(
-    world: FloatArray, ext: FloatArray, half: FloatArray, bc: FloatArray, br: FloatArray, bh: FloatArray
-) -> BoolArray:
-    """(R,) bool: True where tool box r (world_from_shape (R, 4, 4), half extents `half` (3,), world AABB half
-    extents `ext` (R, 3)) overlaps one of the world-aligned boxes (centres bc (B, 3), rotations br (B, 3, 3), half
-    extents bh (B, 3)), m: a pair passes the AABB test (|centre distance| <= bh + ext + 1 nm per axis) before the
-    separating-axis test (`obb_overlap_pairs`'s). The cell-box screen of `CollisionWorld.tool_box_hits`."""
+def aligned_box_hits(world: FloatArray, half: FloatArray, bc: FloatArray, br: FloatArray, bh: FloatArray) -> BoolArray:
+    """(R,) bool: True where tool box r (world_from_shape (R, 4, 4), half extents `half` (3,)) overlaps one of the
+    world-aligned boxes (centres bc (B, 3), rotations br (B, 3, 3), half extents bh (B, 3)), m: a pair passes the
+    AABB test (|centre distance| <= bh + the tool box's world AABB half extent + 1 nm per axis; the extent summed as
+    numpy's `(abs(R) * half).sum(axis=1)` sums it, left to right) before the separating-axis test
+    (`obb_overlap_pairs`'s). The cell-box screen of `CollisionWorld.tool_box_hits`."""
     return np.asarray(
         _aligned_hits(
             np.ascontiguousarray(world, dtype=np.float64),
-            np.ascontiguousarray(ext, dtype=np.float64),
             np.ascontiguousarray(half, dtype=np.float64).reshape(3),
             np.ascontiguousarray(bc, dtype=np.float64),
             np.ascontiguousarray(br, dtype=np.float64),
@@ -50,20 +48,22 @@ def aligned_box_hits(
 
 
 @njit(cache=True, nogil=True)
-def _aligned_hits(world, ext, half, bc, br, bh):  # type: ignore[no-untyped-def]
+def _aligned_hits(world, half, bc, br, bh):  # type: ignore[no-untyped-def]
     n = world.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     c1 = np.empty(3)
     r1 = np.empty((3, 3))
+    ext = np.empty(3)
     for r in range(n):
         for i in range(3):
             c1[i] = world[r, i, 3]
             for j in range(3):
                 r1[i, j] = world[r, i, j]
+            ext[i] = (abs(r1[i, 0]) * half[0] + abs(r1[i, 1]) * half[1]) + abs(r1[i, 2]) * half[2]
         for b in range(bc.shape[0]):
             near = True
             for i in range(3):
-                if not abs(c1[i] - bc[b, i]) <= bh[b, i] + ext[r, i] + 1e-9:
+                if not abs(c1[i] - bc[b, i]) <= bh[b, i] + ext[i] + 1e-9:
                     near = False
             if near and _sat(c1, r1, half, bc[b], br[b], bh[b]):
                 out[r] = True

@@ -461,8 +461,7 @@ class CollisionWorld:
             # the separating-axis tests along each cell box's own axes first (the tool box's extent there against
             # the centres' distance, 1 nm of slack for rounding): the full test only runs on pairs they cannot part
             if aligned:  # boxes along the world axes (the usual cell): the tool box's world AABB, both tests compiled
-                ext = (np.abs(world[:, :3, :3]) * half).sum(axis=2)
-                hits[rows[aligned_box_hits(world, ext, half, bc, br, bh)]] = True
+                hits[rows[aligned_box_hits(world, half, bc, br, bh)]] = True
                 continue
             d = (box_from_world @ (world[:, None, :3, 3] - bc[None])[..., None])[..., 0]  # (R, B, 3) box frames
             ext = (np.abs(box_from_world @ world[:, None, :3, :3]) * half).sum(axis=3)
