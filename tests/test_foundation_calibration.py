@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from normpos_grasp.camera import Camera, RGBDFrame
@@ -96,6 +96,9 @@ def _view(rng: np.random.Generator, n: int, spread: float = 0.6) -> tuple[np.nda
 def test_extrinsics_recover_the_pose(seed: int, n: int) -> None:
     rng = np.random.default_rng(seed)
     wfc, world, uv = _view(rng, n)
+    # distinct control points only: two that share a pixel are refused by design
+    # (test_extrinsics_degenerate_sets_name_their_points); seed 488829 with n=7 draws two 0.17 px apart
+    assume(np.linalg.norm(uv[:, None] - uv[None], axis=-1)[np.triu_indices(n, 1)].min() >= 2.0)
     result = calibrate_extrinsics(CAM, world, uv)
     assert np.allclose(result.world_from_camera, wfc, atol=1e-6)
     assert result.rms_px < 1e-4 and result.residuals_px.shape == (n,) and result.residuals_m.max() < 1e-6
