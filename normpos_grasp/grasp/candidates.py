@@ -212,6 +212,13 @@ def _symmetry_axes(template: Template) -> list[tuple[FloatArray, FloatArray]]:
     return []
 
 
+def symmetry_axes_world(template: Template, world_from_object: FloatArray) -> list[tuple[FloatArray, FloatArray]]:
+    """(unit axis (3,), point (3,)) of the template's continuous symmetry axes (`_symmetry_axes`) in the world, for
+    the part posed at `world_from_object` (4, 4)."""
+    rot, t = world_from_object[:3, :3], world_from_object[:3, 3]
+    return [(rot @ a, rot @ p + t) for a, p in _symmetry_axes(template)]
+
+
 def _about(axis: FloatArray, point: FloatArray, angle: float) -> FloatArray:
     """(4, 4) rotation by `angle` about the line through `point` along unit `axis` (Rodrigues, no input checks:
     this runs once per candidate)."""
@@ -461,10 +468,7 @@ def candidates_for_object(
     (`@align<k>` in the id): the palm then lies parallel to the wall."""
     opts = options or CandidateOptions()
     out: list[GraspCandidate] = []
-    axes_world = [
-        (world_from_object[:3, :3] @ a, world_from_object[:3, :3] @ p + world_from_object[:3, 3])
-        for a, p in _symmetry_axes(template)
-    ]
+    axes_world = symmetry_axes_world(template, world_from_object)
     grasps, object_poses = _object_grasps_cached(template, (tool_kind,), opts)
     if not grasps:
         return out

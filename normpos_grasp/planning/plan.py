@@ -26,7 +26,13 @@ from normpos_grasp.cell.limits import SafetyLimits
 from normpos_grasp.collision.world import CollisionWorld
 from normpos_grasp.errors import PlanningError, SafetyViolation
 from normpos_grasp.geometry.transforms import invert_pose
-from normpos_grasp.grasp.candidates import CandidateOptions, candidates_for_object, primitive_template
+from normpos_grasp.grasp.candidates import (
+    CandidateOptions,
+    candidates_for_object,
+    primitive_template,
+    symmetry_axes_world,
+)
+from normpos_grasp.grasp.lean import LeanOptions, wall_leans
 from normpos_grasp.grasp.quality import judge
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.planning.branches import half_turn_symmetric, place_poses, quickest_grasp, ranked_place_configs
@@ -65,6 +71,9 @@ class PlanOptions:
     quickest_branches: reach the grasp with joint 6 turned by the quicker multiple of pi and place through the
     equivalent place pose and IK branch with the quickest estimated motion (`planning.branches`); False: the
     evaluation's joint angles and the place pose as given.
+    leans: when no grasp is feasible, plan once more with the grasps the cell's boxes block at the grasp leaned
+    away from them (`grasp.lean.wall_leans`: turned about the closing axis or the part's symmetry axis, or slid
+    along the pads), every check as for any candidate; None: no such pass.
     """
 
     cartesian_step_m: float = 0.01
@@ -81,6 +90,7 @@ class PlanOptions:
     evaluation: EvaluationOptions = EvaluationOptions()
     motion: MotionOptions = MotionOptions()
     timing: TimingOptions = TimingOptions()
+    leans: LeanOptions | None = LeanOptions()
 
 
 def build_world(
@@ -258,21 +268,30 @@ def _plan_tool(
     """`plan_pick` with the world's tool set to `cell.tool` (the cell's only tool). A tool that holds an idle tool's
     body (a dual-tool flange: lopsided) without a plan is planned once more with every candidate turned about its
     approach axis (`_turned`: the same grasps with the idle body on another side); the turned copies go in a second
-    pass so that they do not take the feasible slots of other grasps in the first."""
-    plan = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, False)
-    if plan.status == "ok" or not any(s.name.startswith(IDLE_PREFIX) for s in cell.tool.shapes):
-        return plan
-    turned = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, True)
-    if turned.status == "ok":
-        return turned
-    counts = Counter(plan.counts)
-    counts.update(turned.counts)
-    return replace(
-        plan,
-        evaluations=plan.evaluations + turned.evaluations,
-        counts=dict(counts),
-        timing_ms={**turned.timing_ms, "total": turned.timing_ms.get("total", 0.0)},
-    )
+    pass so that they do not take the feasible slots of other grasps in the first. Still without a plan, the grasps
+    the cell's boxes block are planned once more leaned away from them (`PlanOptions.leans`, `_plan_once`'s
+    'leaned')."""
+    plan = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, "")
+    passes = []
+    if any(s.name.startswith(IDLE_PREFIX) for s in cell.tool.shapes):
+        passes.append("turned")
+    if opts.leans is not None and cell.tool.kind == "parallel":
+        passes.append("leaned")
+    for variant in passes:
+        if plan.status == "ok":
+            break
+        again = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, variant)
+        if again.status == "ok":
+            return again
+        counts = Counter(plan.counts)
+        counts.update(again.counts)
+        plan = replace(
+            plan,
+            evaluations=plan.evaluations + again.evaluations,
+            counts=dict(counts),
+            timing_ms={**again.timing_ms, "total": again.timing_ms.get("total", 0.0)},
+        )
+    return plan
 
 
 def _plan_once(
@@ -286,12 +305,13 @@ def _plan_once(
     opts: PlanOptions,
     timing: dict[str, float],
     t_start: float,
-    turned: bool,
+    variant: str,
 ) -> PickPlan:
-    """One planning pass of `_plan_tool`: the candidates as synthesised, or (`turned`) only their turned copies."""
+    """One planning pass of `_plan_tool`: the candidates as synthesised (`variant` ''), or only their turned copies
+    ('turned', `_turned`) or their copies leaned away from the cell's boxes that block them ('leaned', `_leaned`)."""
     if len(cell.bins) > 1:
         return _plan_bins(
-            targets, templates, normpositions, world, arm, cell, home, opts, dict(timing), t_start, turned
+            targets, templates, normpositions, world, arm, cell, home, opts, dict(timing), t_start, variant
         )
     t0 = time.perf_counter()
     candidates: list[GraspCandidate] = []
@@ -300,7 +320,7 @@ def _plan_once(
     walls = cell.bin.world_from_bin[:3, :2].T.copy() if cell.bin is not None else None
     for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
         found = candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
-        candidates.extend(_turned(found, cell) if turned else found)
+        candidates.extend(_variant(found, variant, k, template, target, world, cell, opts))
     timing = dict(timing)
     timing["candidates"] = (time.perf_counter() - t0) * 1e3
     return plan_from_candidates(candidates, targets, world, arm, cell, home, opts, timing, t_start)
@@ -322,6 +342,50 @@ def _turned(candidates: list[GraspCandidate], cell: CellConfig) -> list[GraspCan
             for cand in candidates
         )
     return out
+
+
+def _variant(
+    found: list[GraspCandidate],
+    variant: str,
+    k: int,
+    template: Any,
+    target: Target,
+    world: CollisionWorld,
+    cell: CellConfig,
+    opts: PlanOptions,
+) -> list[GraspCandidate]:
+    """The candidates `found` for target `k` as one pass of `_plan_once` uses them (`variant`: '', 'turned',
+    'leaned')."""
+    if variant == "turned":
+        return _turned(found, cell)
+    if variant == "leaned":
+        # of the grasps the jaws can open to (the evaluation's stroke test): the others need no leaning
+        wide = cell.tool.stroke_m + opts.evaluation.opening_slack_m + 1e-9
+        narrow = cell.tool.min_opening_m - 1e-9
+        fits = [c for c in found if narrow <= c.opening_m <= wide]
+        return _leaned(fits, k, template, target, world, opts)
+    return found
+
+
+def _leaned(
+    found: list[GraspCandidate], k: int, template: Any, target: Target, world: CollisionWorld, opts: PlanOptions
+) -> list[GraspCandidate]:
+    """Copies of target `k`'s candidates that the cell's boxes block at the grasp, leaned, spun about the part's one
+    symmetry axis or slid along the part away from them (`grasp.lean.wall_leans`). Blocked: the tool's boxes meet
+    the cell's (`CollisionWorld.tool_box_hits`, the evaluation's own test) even at the grasp raised back along the
+    approach by the evaluation's `max_raise_m`: a grasp whose fingertips only dip into the floor is raised by the
+    evaluation, not leaned, and a leaned copy that dips its tips is kept for the evaluation to raise."""
+    back = float(opts.evaluation.max_raise_m)
+
+    def blocked(world_from_tcp: FloatArray, opening_m: FloatArray) -> FloatArray:
+        raised = np.array(world_from_tcp, dtype=np.float64, copy=True)
+        raised[:, :3, 3] -= raised[:, :3, 2] * back
+        return world.tool_box_hits(raised, opening_m)
+
+    axes = symmetry_axes_world(template, target.world_from_object)
+    pose = target.world_from_object
+    points = np.asarray(target.mesh.vertices, dtype=np.float64) @ pose[:3, :3].T + pose[:3, 3]  # type: ignore[attr-defined]
+    return wall_leans(found, blocked, {k: axes[0]} if len(axes) == 1 else None, opts.leans, {k: points})
 
 
 def predicted_success(plan: PickPlan, options: PlanOptions | None = None) -> float:
@@ -392,7 +456,7 @@ def _plan_bins(
     opts: PlanOptions,
     timing: dict[str, float],
     t_start: float,
-    turned: bool = False,
+    variant: str = "",
 ) -> PickPlan:
     """`plan_pick` in a cell with several bins: the bins in turn from `cell.bin` on, each with a part in it and a
     free place of its own, planned as a one-bin cell (its walls for the candidates, its rim for the entry and exit,
@@ -425,7 +489,7 @@ def _plan_bins(
         for k, (target, template) in enumerate(zip(targets, templates, strict=True)):
             if held_in[k] == b.name:
                 found = candidates_for_object(k, template, target.world_from_object, cell.tool.kind, cand_opts, walls)
-                candidates.extend(_turned(found, cell) if turned else found)
+                candidates.extend(_variant(found, variant, k, template, target, world, cell, opts))
         timing["candidates"] = timing.get("candidates", 0.0) + (time.perf_counter() - t0) * 1e3
         one = replace(cell, bin=b, places=places)
         plan = plan_from_candidates(candidates, targets, world, arm, one, home, opts, dict(timing), t_start)
