@@ -105,3 +105,35 @@ def test_the_template_that_explains_the_pixels_better_wins(puck_scene) -> None: 
     puck_fit = fit_template_from(whole, puck, truth[None], FitOptions(), ctx)
     assert puck_fit.accepted
     assert det._outcompeted(puck_fit, whole, [nut, puck], FitOptions(), ctx) == (False, None)
+
+
+def test_a_template_resting_on_the_floor_beside_the_pixels_does_not_win(puck_scene, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A competitor that explains the puck's pixels better on score but rests on the floor round them (a 60 mm
+    plate lying under the puck: most of its visible face agrees with floor depth outside the ROI) does not take
+    the puck's place; one resting no more off the ROI than the puck does, as before; without the ROI the score
+    alone decides (the rule before)."""
+    from dataclasses import replace
+
+    import normpos_grasp.perception.cad_detector as cad_detector
+
+    frame, (nut, puck), truth, roi, hint = puck_scene
+    plate = Template(name="plate", label="plate", mesh=trimesh.creation.box(extents=[0.06, 0.06, 0.003]),
+                     symmetry=Symmetry())  # fmt: skip
+    det = CadDetector([puck, plate], roi)
+    depth = np.asarray(frame.depth_m, dtype=np.float64)
+    ctx = FitContext(frame.camera, depth)
+    whole = measure_instances(frame, [hint], MeasureOptions())[0]
+    puck_fit = fit_template_from(whole, puck, truth[None], FitOptions(), ctx)
+    assert puck_fit.accepted
+    in_roi = det._roi_mask(frame, backproject_depth(frame.camera, depth), roi).reshape(depth.shape)
+    near = cad_detector._dilate(in_roi, det.options.off_roi_margin_px)
+    on_floor = np.eye(4)
+    on_floor[2, 3] = 0.0015  # the plate lying on the floor, centred under the puck
+    better = min(1.0, puck_fit.score + 0.01)
+    rival = replace(puck_fit, template=plate, frame_from_object=on_floor, score=better)
+    twin = replace(puck_fit, template=replace(puck, name="twin"), score=better)  # the puck's own surface
+    monkeypatch.setattr(cad_detector, "fit_best", lambda *a, **k: rival)
+    assert det._outcompeted(puck_fit, whole, [puck, plate], FitOptions(), ctx, near) == (False, None)
+    assert det._outcompeted(puck_fit, whole, [puck, plate], FitOptions(), ctx) == (True, rival)
+    monkeypatch.setattr(cad_detector, "fit_best", lambda *a, **k: twin)
+    assert det._outcompeted(puck_fit, whole, [puck, plate], FitOptions(), ctx, near) == (True, twin)
