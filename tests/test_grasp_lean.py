@@ -117,15 +117,17 @@ def test_slides_stay_over_the_part() -> None:
         return (np.abs(poses[:, 0, 3] - 0.5) < 0.015) | (np.abs(poses[:, 2, 2] + 1.0) > 1e-9)
 
     c = _candidate(_down())
+    slides = lean.LeanOptions(slides_m=(0.01, 0.02, 0.03))  # off by default (LeanOptions: slid bars slipped)
     # the part 70 mm long along the slide (world x): 20 and 30 mm slides keep the TCP 5 mm inside it, both ways
     long_part = {0: np.array([[0.465, -0.02, 0.01], [0.535, 0.02, 0.05]])}
-    copies = lean.wall_leans([c], blocked, None, None, long_part)
+    copies = lean.wall_leans([c], blocked, None, slides, long_part)
     slid = sorted(round(float(k.world_from_tcp[0, 3]) - 0.5, 6) for k in copies)
     assert slid == [-0.03, -0.02, 0.02, 0.03] and all("@slide" in k.grasp_id for k in copies)
     # a part 40 mm long: no slide leaves the TCP 5 mm inside it, so no copy
     short_part = {0: np.array([[0.48, -0.02, 0.01], [0.52, 0.02, 0.05]])}
-    assert lean.wall_leans([c], blocked, None, None, short_part) == []
-    assert lean.wall_leans([c], blocked) == []  # without the part's points: no slides
+    assert lean.wall_leans([c], blocked, None, slides, short_part) == []
+    assert lean.wall_leans([c], blocked, None, slides) == []  # without the part's points: no slides
+    assert lean.wall_leans([c], blocked, None, None, long_part) == []  # the default slides nothing
 
 
 def test_the_leaned_pass_does_not_run_where_the_first_pass_plans(
