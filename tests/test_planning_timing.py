@@ -12,8 +12,9 @@ import pytest
 import trimesh
 
 from normpos_grasp.cell import CellConfig, load_cell
+from normpos_grasp.cell.stream import stream_samples
 from normpos_grasp.errors import SafetyViolation
-from normpos_grasp.execution.driver import DriverOptions, stream_samples
+from normpos_grasp.execution.driver import DriverOptions
 from normpos_grasp.execution.plan import check_plan, parse_plan
 from normpos_grasp.execution.safety import SafetyLimits
 from normpos_grasp.geometry import make_pose
@@ -297,7 +298,7 @@ def test_planned_trajectory_passes_the_execution_checks_and_stops_at_the_gripper
 def _streamed(doc: dict, limits: SafetyLimits) -> None:
     """Check the servo commands execution streams for plan.json `doc` as the driver does before sending: pieces
     split where the gripper acts (home -> grasp -> place -> post_place), each a cubic spline through its samples
-    every `DriverOptions().stream_period_s` (execution.driver.stream_samples)."""
+    every `DriverOptions().stream_period_s` (cell.stream.stream_samples, as the driver streams)."""
     parsed = parse_plan(doc)
     t, q = parsed.traj_t, parsed.traj_q
     assert t is not None and q is not None
