@@ -5,6 +5,7 @@ waypoints only where the path allows them, and the planner's plans checked as ex
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -314,13 +315,92 @@ def _streamed(doc: dict, limits: SafetyLimits) -> None:
 
 def test_the_default_jerk_cap_keeps_the_streamed_commands_within_the_caps() -> None:
     """The planner's jerk cap is its own (UR publishes none) but the servo stream bounds it: the spline execution
-    streams through the 20 ms samples overshoots sharp acceleration corners. At the default cap the commands pass
-    the driver's check; at twice the default the same plan's commands break the acceleration cap."""
+    streams through the 20 ms samples overshoots sharp acceleration corners. At the default cap this plan's
+    commands pass the driver's check as they are (no re-timing: the trajectory is the jerk-100 one)."""
     doc, cell = _box_plan(TimingOptions())
     limits = SafetyLimits.from_cell(cell)
     check_plan(parse_plan(doc), limits)
     _streamed(doc, limits)
+
+
+def _samples(doc: dict) -> np.ndarray:
+    return np.array([[s["t"], *s["q"]] for s in doc["trajectory"]["samples"]])
+
+
+def test_a_plan_whose_stream_the_driver_would_refuse_is_retimed_with_the_jerk_cap_halved(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Timed at twice the default jerk cap this path's samples are within the caps but its streamed commands are
+    not (joint 0 at 5.10 of 5 rad/s^2; the driver would refuse the plan): the planner re-times it at the halved
+    cap, where they pass, so the plan is the default-jerk plan, sample for sample."""
+    import normpos_grasp.planning.plan as plan_module
+
+    outcomes: list[str] = []
+    check = plan_module.check_stream
+
+    def recorded(*args: object, **kwargs: object) -> None:
+        try:
+            check(*args, **kwargs)  # type: ignore[arg-type]
+        except SafetyViolation as exc:
+            outcomes.append(str(exc))
+            raise
+        outcomes.append("passed")
+
+    default, cell = _box_plan(TimingOptions())
+    limits = SafetyLimits.from_cell(cell)
+    monkeypatch.setattr(plan_module, "check_stream", recorded)
     sharp, _ = _box_plan(TimingOptions(jerk_rad_s3=2.0 * OPTS.jerk_rad_s3))
-    check_plan(parse_plan(sharp), limits)  # the samples themselves are within the caps ...
+    assert len(outcomes) == 2 and "streamed commands" in outcomes[0] and outcomes[1] == "passed"
+    check_plan(parse_plan(sharp), limits)
+    _streamed(sharp, limits)  # the driver takes every piece
+    np.testing.assert_array_equal(_samples(sharp), _samples(default))
+
+
+def test_a_stream_over_the_caps_at_the_default_jerk_is_retimed_or_refused() -> None:
+    """With 99 % of the caps planned (1 % left for the spline's overshoot) this path's streamed commands exceed the
+    acceleration cap at the default jerk (joint 0 at 1.011 of the cap) and at its half (1.0006): the planner goes
+    down to the floor, 25 rad/s^3, where they pass, and returns that plan; with the floor at 50 no timing of that
+    grasp passes: it is rejected ('path_stream_joint_accel'), never handed to execution, and the next grasp is
+    planned (its stream passes at 50)."""
+    tight = TimingOptions(cap_share=0.99)
+    cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
+    limits = SafetyLimits.from_cell(cell)
+    part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
+    fit = TemplateFit(part, make_pose(None, [0.5, 0.05, 0.025]), 1.0, 0.0, 1.0, 1.0, 0.0, True, instance_id=1)
+    doc, _ = _box_plan(tight)
+    check_plan(parse_plan(doc), limits)
+    _streamed(doc, limits)
+    floor, _ = _box_plan(replace(tight, jerk_rad_s3=25.0))
+    np.testing.assert_array_equal(_samples(doc), _samples(floor))  # timed at the floor
+    default, _ = _box_plan(TimingOptions())
+    assert doc["trajectory"]["duration_s"] > default["trajectory"]["duration_s"]  # the softer corners cost time
+    refused = plan_pick([fit], [], cell, PlanOptions(timing=replace(tight, stream_jerk_floor_rad_s3=50.0)))
+    assert refused.counts.get("path_stream_joint_accel", 0) == 1
+    assert not [r for r in refused.counts if r.startswith("path_cell")]  # the samples passed: only the stream failed
+    assert refused.status == "ok" and refused.chosen is not None
+    assert refused.chosen.candidate.grasp_id != doc["grasp"]["id"]  # another grasp than the one timed at 25
+    _streamed(refused.to_json(), limits)
+
+
+def test_the_planner_checks_the_stream_the_driver_sends() -> None:
+    """The planner and the driver stream with the same function at the same period and cut a plan at the same
+    waypoints; `check_stream` refuses what the driver refuses."""
+    from normpos_grasp.cell import stream
+    from normpos_grasp.execution import driver
+    from normpos_grasp.execution.plan import ExecuteOptions
+    from normpos_grasp.planning.plan import STREAM_CUTS
+
+    assert driver.stream_samples is stream.stream_samples
+    assert DriverOptions().stream_period_s == OPTS.stream_period_s == stream.STREAM_PERIOD_S
+    assert set(STREAM_CUTS) == set(ExecuteOptions().close_at) | set(ExecuteOptions().open_at)
+    doc, cell = _box_plan(TimingOptions())
+    limits = SafetyLimits.from_cell(cell)
+    parsed = parse_plan(doc)
+    t, q = parsed.traj_t, parsed.traj_q
+    assert t is not None and q is not None
+    cuts = [0] + [int(np.argmin(np.abs(q - parsed.q[parsed.names.index(n)]).max(axis=1))) for n in STREAM_CUTS]
+    cuts.append(len(t) - 1)
+    stream.check_stream(t, q, cuts, limits)
+    sharper = replace(limits, max_joint_accel=limits.max_joint_accel * 0.9)
     with pytest.raises(SafetyViolation, match="streamed commands"):
-        _streamed(sharp, limits)  # ... what would be streamed is not
+        stream.check_stream(t, q, cuts, sharper)

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.cell.stream import STREAM_PERIOD_S
 from normpos_grasp.errors import PlanningError
 from normpos_grasp.records.plan import Trajectory
 from normpos_grasp.typing import ArrayLike, FloatArray
@@ -32,11 +33,16 @@ class TimingOptions:
     cubic spline through the 20 ms samples every 8 ms and checks those commands against the caps; the spline's
     accelerations exceed the profile's the more the sharper its corners: with 0.97 of the caps planned the streamed
     commands peak at 0.98 of the acceleration cap at 50 rad/s^3, 0.99 at 100, and above the cap (1.00-1.04, the
-    driver refuses them) at 150-200 (`benchmarks/bench_cycle.py`). cap_share: share of the velocity, acceleration
-    and jerk caps the profiles plan for (the rest absorbs the rounding of plan.json and of the servo stream). blend:
-    pass through waypoints without a gripper action at speed where the path allows it (False: rest at every
-    waypoint). check_step_rad:
-    largest joint step between collision checks of a blended joint motion, rad (the planner's edge resolution).
+    driver refuses them) at 150-200 (`benchmarks/bench_cycle.py`). 0.99 leaves no margin an unseen path is sure to
+    keep, so the planner checks every plan's stream as the driver will (`cell.stream.check_stream`, pieces at
+    stream_period_s, s: the driver's default period) and re-times a plan whose stream exceeds with the jerk cap
+    halved, down to stream_jerk_floor_rad_s3 (below it the plan is refused: 'path_stream_<check>'): a plan the
+    driver would refuse at run time (nothing moves, but the pick is lost) is never emitted, and the faster cap is
+    kept wherever its stream passes (`planning.plan._timed_for_stream`). cap_share: share of the velocity,
+    acceleration and jerk caps the profiles plan for (the rest absorbs the rounding of plan.json and of the servo
+    stream). blend: pass through waypoints without a gripper action at speed where the path allows it (False: rest
+    at every waypoint). check_step_rad: largest joint step between collision checks of a blended joint motion, rad
+    (the planner's edge resolution).
     """
 
     dt_s: float = 0.02
@@ -46,10 +52,16 @@ class TimingOptions:
     cap_share: float = 0.97
     blend: bool = True
     check_step_rad: float = 0.03
+    stream_period_s: float = STREAM_PERIOD_S
+    stream_jerk_floor_rad_s3: float = 25.0
 
     def __post_init__(self) -> None:
         if self.method not in ("ruckig", "trapezoid"):
             raise PlanningError(f"timing method {self.method!r}: choose 'ruckig' or 'trapezoid'")
+        for name in ("jerk_rad_s3", "stream_period_s", "stream_jerk_floor_rad_s3"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0.0):
+                raise PlanningError(f"timing {name} = {value!r}: must be positive and finite")
 
 
 def _trapezoid(length: float, v: float, a: float) -> tuple[float, float, float]:
