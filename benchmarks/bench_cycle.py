@@ -12,7 +12,7 @@ the pipeline runs it) and planned with `plan_pick` once per variant, same fits, 
 - jerk 50: the default with the former jerk cap, 50 rad/s^3 (what the planner's 100 rad/s^3 saves);
 - no blends: the default resting at every waypoint (what blending adds);
 - jerk xF: `--jerk-factor` times the default jerk cap (what a sharper jerk cap would save; not a cell cap: the
-  servo stream bounds it, see below).
+  servo stream bounds it, see below, and the planner re-times the plans whose stream exceeds at a halved cap).
 Each plan's arm motion is split at its waypoints: approach (home -> entry), descend (entry -> grasp), lift
 (grasp -> retreat), transfer (retreat -> pre_place), place (pre_place -> place), retreat (place -> post_place).
 Every plan is then checked as execution checks it before sending: plan.json round trip, `execution.plan.check_plan`
@@ -22,6 +22,8 @@ the caps, and the largest distance of the TCP from its straight line between the
 commands execution would stream (`execution.driver.stream_samples` every 8 ms through the pieces between the
 gripper's waypoints, home -> grasp -> place -> post_place) are checked against the same caps as the driver checks
 them before the first is sent: their largest speed or acceleration share, and the plans the driver would refuse.
+The planner runs that check itself and re-times a plan whose stream exceeds with its jerk cap halved
+(`planning.plan._timed_for_stream`): 're-timed' counts the plans it re-timed (its debug log, captured here).
 
     nice -n 10 .venv/bin/python benchmarks/bench_cycle.py [--bins 6] [--parts 10] [--seed 5200]
 """
@@ -29,6 +31,7 @@ them before the first is sent: their largest speed or acceleration share, and th
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 from dataclasses import replace
 from typing import Any
@@ -153,6 +156,18 @@ def cap_shares(plan: PickPlan, limits: SafetyLimits, jerk_cap: float) -> tuple[f
     )
 
 
+class _Retimes(logging.Handler):
+    """Counts the planner's 'servo stream refused ... re-timed' records (planning.plan._timed_for_stream)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.getMessage().startswith("servo stream refused"):
+            self.count += 1
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bins", type=int, default=6)
@@ -163,6 +178,11 @@ def main() -> None:
     cell = load_cell(CELL)
     library = default_part_library()
     limits = SafetyLimits.from_cell(cell)
+    retimes = _Retimes()
+    plan_log = logging.getLogger("normpos_grasp.planning.plan")
+    plan_log.addHandler(retimes)
+    plan_log.setLevel(logging.DEBUG)
+    plan_log.propagate = False  # the counter only: the planner's other records are not printed
     base = TimingOptions()
     nearest = PlanOptions(quickest_branches=False)
     variants = {
@@ -195,6 +215,7 @@ def main() -> None:
         todo: list[tuple[str, PlanOptions, Any]] = [(k, o, None) for k, o in variants.items()]
         while todo:
             name, options, start_q = todo.pop(0)
+            retimes.count = 0
             plan = plan_pick(result.fits, result.normpositions, cell, options, start_q=start_q)
             if plan.status != "ok" or plan.trajectory is None:
                 line.append(f"{name}: {plan.status}")
@@ -204,7 +225,17 @@ def main() -> None:
             dev = line_deviation_mm(plan, cell)
             sv, sent_ok = streamed_share(plan, limits)
             rows[name].append(
-                (plan.trajectory.duration_s, v, a, j, dev, plan.timing_ms.get("timing", 0.0), sv, float(not sent_ok))
+                (
+                    plan.trajectory.duration_s,
+                    v,
+                    a,
+                    j,
+                    dev,
+                    plan.timing_ms.get("timing", 0.0),
+                    sv,
+                    float(not sent_ok),
+                    float(retimes.count > 0),
+                )
             )
             parts[name].append(segment_times(plan))
             line.append(f"{name}: {plan.trajectory.duration_s:.2f} s")
@@ -214,22 +245,23 @@ def main() -> None:
     print("\n## Cycle (plan trajectory duration) and checks, per variant")
     print(
         "| timing | plans | median s | max s | max speed / cap | max accel / cap | max jerk / default cap | "
-        "max line deviation mm | timing ms (median) | max streamed / cap | stream refused |"
+        "max line deviation mm | timing ms (median) | max streamed / cap | stream refused | re-timed |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, rs in rows.items():
         if not rs:
-            print(f"| {name} | 0 | - | - | - | - | - | - | - | - | - |")
+            print(f"| {name} | 0 | - | - | - | - | - | - | - | - | - | - |")
             continue
         r = np.array(rs)
         print(
             f"| {name} | {len(rs)} | {np.median(r[:, 0]):.2f} | {r[:, 0].max():.2f} | {r[:, 1].max():.3f} | "
             f"{r[:, 2].max():.3f} | {r[:, 3].max():.2f} | {r[:, 4].max():.3f} | {np.median(r[:, 5]):.1f} | "
-            f"{r[:, 6].max():.4f} | {int(r[:, 7].sum())} |"
+            f"{r[:, 6].max():.4f} | {int(r[:, 7].sum())} | {int(r[:, 8].sum())} |"
         )
     print("every plan passed execution.plan.check_plan (SafetyLimits.from_cell) on its plan.json")
     print(
-        "max streamed / cap: the servo commands (8 ms) the driver checks before sending; refused: plans it would stop"
+        "max streamed / cap: the servo commands (8 ms) the driver checks before sending; refused: plans it would stop;"
+        " re-timed: plans the planner re-timed with a halved jerk cap because their stream exceeded"
     )
     print(
         "\n## Where the seconds go: median s per segment (over the bins; 'approach' starts at home or the post-place)"
