@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from normpos_grasp.cell.stream import stream_samples
 from normpos_grasp.errors import SafetyViolation
-from normpos_grasp.execution.driver import stream_samples
 from normpos_grasp.execution.safety import SafetyLimits
 
 

@@ -5,6 +5,7 @@ waypoints only where the path allows them, and the planner's plans checked as ex
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,9 @@ import pytest
 import trimesh
 
 from normpos_grasp.cell import CellConfig, load_cell
+from normpos_grasp.cell.stream import stream_samples
+from normpos_grasp.errors import SafetyViolation
+from normpos_grasp.execution.driver import DriverOptions
 from normpos_grasp.execution.plan import check_plan, parse_plan
 from normpos_grasp.execution.safety import SafetyLimits
 from normpos_grasp.geometry import make_pose
@@ -216,6 +220,57 @@ def test_a_retry_reuses_the_blends_it_left_unchanged() -> None:
     _limits().check_trajectory(traj.t, traj.q)
 
 
+def test_joint_edges_pass_their_common_via_at_speed_only_where_the_blend_is_clear() -> None:
+    """Two joint edges (an RRT transfer's vias): with `free` tests the arm passes the via at speed (a 6-DoF blend
+    through the exact via, collision-checked as densely as the planner's edges); where the blended samples leave
+    the edges into a collision (a corner cut), it rests at the via and follows the checked edges exactly."""
+    a = np.array([0.0, -1.5, 1.5, -1.5, -1.5, 0.0])
+    via = a + np.array([1.2, 0.4, -0.3, 0.0, 0.2, 0.0])
+    b = via + np.array([0.9, 0.5, -0.4, 0.3, 0.0, 0.0])  # the same turning sense for the moving joints
+
+    def on_edges(qs: np.ndarray) -> bool:  # the corner at the via is an obstacle: only the edges are free
+        for p0, p1 in ((a, via), (via, b)):
+            d = (p1 - p0) / np.linalg.norm(p1 - p0)
+            rel = qs - p0
+            off = np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)
+            if np.all(off < 1e-9):
+                return True
+        return False
+
+    checked: list[np.ndarray] = []
+
+    def free(qs: np.ndarray) -> bool:
+        checked.append(qs)
+        return True
+
+    edges = [np.stack([a, via]), np.stack([via, b])]
+    blended = time_path(
+        [PathPiece(edges[0], None, False, free), PathPiece(edges[1], None, True, free)],
+        VMAX, AMAX, LOWER, UPPER, options=OPTS,
+    )  # fmt: skip
+    corner = time_path(
+        [PathPiece(edges[0], None, False, on_edges), PathPiece(edges[1], None, True, on_edges)],
+        VMAX, AMAX, LOWER, UPPER, options=OPTS,
+    )  # fmt: skip
+    stopped = time_path(
+        [PathPiece(edges[0], None, False, free), PathPiece(edges[1], None, True, free)],
+        VMAX, AMAX, LOWER, UPPER, options=TimingOptions(blend=False),
+    )  # fmt: skip
+    for traj in (blended, corner, stopped):
+        k = int(np.argmin(np.abs(traj.q - via).max(axis=1)))
+        np.testing.assert_array_equal(traj.q[k], via)  # the via is a sample (execution splits the stream there)
+        _limits().check_trajectory(traj.t, traj.q)
+    k = int(np.argmin(np.abs(blended.q - via).max(axis=1)))
+    assert np.abs(blended.qd[k]).max() > 0.3  # rad/s: passing, not stopping
+    assert checked and max(np.abs(np.diff(c, axis=0)).max() for c in checked) <= OPTS.check_step_rad + 1e-9
+    assert blended.duration_s < stopped.duration_s - 0.1
+    # the corner: the blended samples would leave the edges, so the arm rests at the via and stays on the edges
+    k = int(np.argmin(np.abs(corner.q - via).max(axis=1)))
+    assert np.abs(corner.qd[k]).max() < 1e-9
+    assert on_edges(corner.q[: k + 1]) and on_edges(corner.q[k:])
+    assert corner.duration_s == pytest.approx(stopped.duration_s, abs=1e-9)
+
+
 def _box_plan(timing: TimingOptions) -> tuple[dict, CellConfig]:
     cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
     part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
@@ -239,3 +294,113 @@ def test_planned_trajectory_passes_the_execution_checks_and_stops_at_the_gripper
         assert np.abs(parsed.traj_q[k] - q).max() < 1e-8
         assert np.abs(qd[k - 1]).max() < 0.05 and np.abs(qd[k]).max() < 0.05  # rad/s over one sample
     assert doc["trajectory"]["duration_s"] < before["trajectory"]["duration_s"]
+
+
+def _streamed(doc: dict, limits: SafetyLimits) -> None:
+    """Check the servo commands execution streams for plan.json `doc` as the driver does before sending: pieces
+    split where the gripper acts (home -> grasp -> place -> post_place), each a cubic spline through its samples
+    every `DriverOptions().stream_period_s` (cell.stream.stream_samples, as the driver streams)."""
+    parsed = parse_plan(doc)
+    t, q = parsed.traj_t, parsed.traj_q
+    assert t is not None and q is not None
+    cuts = [0]
+    for name in ("grasp", "place"):
+        w = parsed.q[parsed.names.index(name)]
+        cuts.append(cuts[-1] + int(np.argmin(np.abs(q[cuts[-1] :] - w).max(axis=1))))
+    cuts.append(len(t) - 1)
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        sent_t, sent = stream_samples(t[a : b + 1], q[a : b + 1], DriverOptions().stream_period_s)
+        limits.check_trajectory(sent_t, sent, "streamed commands")
+
+
+def test_the_default_jerk_cap_keeps_the_streamed_commands_within_the_caps() -> None:
+    """The planner's jerk cap is its own (UR publishes none) but the servo stream bounds it: the spline execution
+    streams through the 20 ms samples overshoots sharp acceleration corners. At the default cap this plan's
+    commands pass the driver's check as they are (no re-timing: the trajectory is the jerk-100 one)."""
+    doc, cell = _box_plan(TimingOptions())
+    limits = SafetyLimits.from_cell(cell)
+    check_plan(parse_plan(doc), limits)
+    _streamed(doc, limits)
+
+
+def _samples(doc: dict) -> np.ndarray:
+    return np.array([[s["t"], *s["q"]] for s in doc["trajectory"]["samples"]])
+
+
+def test_a_plan_whose_stream_the_driver_would_refuse_is_retimed_with_the_jerk_cap_halved(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Timed at twice the default jerk cap this path's samples are within the caps but its streamed commands are
+    not (joint 0 at 5.10 of 5 rad/s^2; the driver would refuse the plan): the planner re-times it at the halved
+    cap, where they pass, so the plan is the default-jerk plan, sample for sample."""
+    import normpos_grasp.planning.plan as plan_module
+
+    outcomes: list[str] = []
+    check = plan_module.check_stream
+
+    def recorded(*args: object, **kwargs: object) -> None:
+        try:
+            check(*args, **kwargs)  # type: ignore[arg-type]
+        except SafetyViolation as exc:
+            outcomes.append(str(exc))
+            raise
+        outcomes.append("passed")
+
+    default, cell = _box_plan(TimingOptions())
+    limits = SafetyLimits.from_cell(cell)
+    monkeypatch.setattr(plan_module, "check_stream", recorded)
+    sharp, _ = _box_plan(TimingOptions(jerk_rad_s3=2.0 * OPTS.jerk_rad_s3))
+    assert len(outcomes) == 2 and "streamed commands" in outcomes[0] and outcomes[1] == "passed"
+    check_plan(parse_plan(sharp), limits)
+    _streamed(sharp, limits)  # the driver takes every piece
+    np.testing.assert_array_equal(_samples(sharp), _samples(default))
+
+
+def test_a_stream_over_the_caps_at_the_default_jerk_is_retimed_or_refused() -> None:
+    """With 99 % of the caps planned (1 % left for the spline's overshoot) this path's streamed commands exceed the
+    acceleration cap at the default jerk (joint 0 at 1.011 of the cap) and at its half (1.0006): the planner goes
+    down to the floor, 25 rad/s^3, where they pass, and returns that plan; with the floor at 50 no timing of that
+    grasp passes: it is rejected ('path_stream_joint_accel'), never handed to execution, and the next grasp is
+    planned (its stream passes at 50)."""
+    tight = TimingOptions(cap_share=0.99)
+    cell = load_cell(EXAMPLES / "ur5e_bin_parallel.yaml")
+    limits = SafetyLimits.from_cell(cell)
+    part = Template("box", "box", trimesh.creation.box((0.06, 0.04, 0.03)), shape="box")
+    fit = TemplateFit(part, make_pose(None, [0.5, 0.05, 0.025]), 1.0, 0.0, 1.0, 1.0, 0.0, True, instance_id=1)
+    doc, _ = _box_plan(tight)
+    check_plan(parse_plan(doc), limits)
+    _streamed(doc, limits)
+    floor, _ = _box_plan(replace(tight, jerk_rad_s3=25.0))
+    np.testing.assert_array_equal(_samples(doc), _samples(floor))  # timed at the floor
+    default, _ = _box_plan(TimingOptions())
+    assert doc["trajectory"]["duration_s"] > default["trajectory"]["duration_s"]  # the softer corners cost time
+    refused = plan_pick([fit], [], cell, PlanOptions(timing=replace(tight, stream_jerk_floor_rad_s3=50.0)))
+    assert refused.counts.get("path_stream_joint_accel", 0) == 1
+    assert not [r for r in refused.counts if r.startswith("path_cell")]  # the samples passed: only the stream failed
+    assert refused.status == "ok" and refused.chosen is not None
+    assert refused.chosen.candidate.grasp_id != doc["grasp"]["id"]  # another grasp than the one timed at 25
+    _streamed(refused.to_json(), limits)
+
+
+def test_the_planner_checks_the_stream_the_driver_sends() -> None:
+    """The planner and the driver stream with the same function at the same period and cut a plan at the same
+    waypoints; `check_stream` refuses what the driver refuses."""
+    from normpos_grasp.cell import stream
+    from normpos_grasp.execution import driver
+    from normpos_grasp.execution.plan import ExecuteOptions
+    from normpos_grasp.planning.plan import STREAM_CUTS
+
+    assert driver.stream_samples is stream.stream_samples
+    assert DriverOptions().stream_period_s == OPTS.stream_period_s == stream.STREAM_PERIOD_S
+    assert set(STREAM_CUTS) == set(ExecuteOptions().close_at) | set(ExecuteOptions().open_at)
+    doc, cell = _box_plan(TimingOptions())
+    limits = SafetyLimits.from_cell(cell)
+    parsed = parse_plan(doc)
+    t, q = parsed.traj_t, parsed.traj_q
+    assert t is not None and q is not None
+    cuts = [0] + [int(np.argmin(np.abs(q - parsed.q[parsed.names.index(n)]).max(axis=1))) for n in STREAM_CUTS]
+    cuts.append(len(t) - 1)
+    stream.check_stream(t, q, cuts, limits)
+    sharper = replace(limits, max_joint_accel=limits.max_joint_accel * 0.9)
+    with pytest.raises(SafetyViolation, match="streamed commands"):
+        stream.check_stream(t, q, cuts, sharper)

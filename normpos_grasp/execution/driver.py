@@ -18,6 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from normpos_grasp.cell.stream import STREAM_PERIOD_S, stream_samples
 from normpos_grasp.errors import (
     ConnectionLost,
     DriverFault,
@@ -124,7 +125,8 @@ class DriverOptions:
     issued when a motion call is left by an interrupt (SIGINT/SIGTERM) or an exception decelerates the joints at
     max(halt_decel, peak joint speed / halt_time_s) rad/s^2, at most halt_decel_max (ur_rtde's joint acceleration
     ceiling): the arm rests within halt_time_s (UR's e-Series stopping time, 50 ms) up to 2 rad/s.
-    stream_period_s: servo streaming period. watchdog_s: controller-side watchdog while streaming (the program
+    stream_period_s: servo streaming period (`cell.stream.STREAM_PERIOD_S`, the period the planner checks its plans'
+    streams at; `stream_samples` lives there too). watchdog_s: controller-side watchdog while streaming (the program
     stops if no command arrives for this long) and the most a stream tick may be late.
     """
 
@@ -138,7 +140,7 @@ class DriverOptions:
     halt_decel: float = 10.0
     halt_time_s: float = 0.05
     halt_decel_max: float = 40.0
-    stream_period_s: float = 0.008
+    stream_period_s: float = STREAM_PERIOD_S
     watchdog_s: float = 0.2
 
     def halt_decel_for(self, peak_speed: float) -> float:
@@ -184,65 +186,6 @@ class ArmDriver(Protocol):
 
     @property
     def fault(self) -> DriverFault | None: ...
-
-
-def stream_samples(times: FloatArray, q: FloatArray, period: float) -> tuple[FloatArray, FloatArray]:
-    """Servo targets every `period` s through a time-stamped joint trajectory: (send times (K,), joints (K, 6)).
-
-    A cubic spline through the samples (continuous acceleration, zero velocity at both ends: a streamed trajectory
-    starts and ends at rest). Straight lines between samples would put each sample's whole change of velocity into
-    one streaming period: on 20 ms plan samples streamed at 8 ms, 2.5 times the acceleration that was checked. On a
-    jerk-limited profile sampled at 20 ms the spline's accelerations stay within about 1 % of the profile's (the
-    planner keeps 3 % of every cap for this, `planning.timing.TimingOptions.cap_share`), and the caller checks the
-    streamed targets against the caps before the first is sent. The last target is the trajectory's end, sent one
-    period after the one before it (never faster than planned)."""
-    t = np.asarray(times, dtype=np.float64)
-    qs = np.asarray(q, dtype=np.float64)
-    n_send = int(np.ceil((t[-1] - t[0]) / period - 1e-9)) + 1
-    send = t[0] + period * np.arange(n_send)
-    if t.shape[0] < 2:
-        return send, np.repeat(qs[:1], n_send, axis=0)
-    m = _clamped_spline_accelerations(t, qs)
-    x = np.minimum(send, t[-1])
-    i = np.clip(np.searchsorted(t, x, side="right") - 1, 0, t.shape[0] - 2)
-    h = (t[i + 1] - t[i])[:, None]
-    a = (t[i + 1] - x)[:, None]
-    b = (x - t[i])[:, None]
-    out = (
-        m[i] * a**3 / (6 * h)
-        + m[i + 1] * b**3 / (6 * h)
-        + (qs[i] / h - m[i] * h / 6) * a
-        + (qs[i + 1] / h - m[i + 1] * h / 6) * b
-    )
-    return send, out
-
-
-def _clamped_spline_accelerations(t: FloatArray, q: FloatArray) -> FloatArray:
-    """Knot accelerations (N, 6) of the cubic spline through (t, q) with zero end velocities (tridiagonal solve)."""
-    n = t.shape[0]
-    h = np.diff(t)
-    chord = np.diff(q, axis=0) / h[:, None]
-    sub = np.zeros(n)
-    diag = np.zeros(n)
-    sup = np.zeros(n)
-    rhs = np.zeros_like(q)
-    diag[0], sup[0], rhs[0] = 2 * h[0], h[0], 6 * chord[0]
-    sub[1:-1], diag[1:-1], sup[1:-1] = h[:-1], 2 * (h[:-1] + h[1:]), h[1:]
-    rhs[1:-1] = 6 * (chord[1:] - chord[:-1])
-    sub[-1], diag[-1], rhs[-1] = h[-1], 2 * h[-1], -6 * chord[-1]
-    # Thomas algorithm (the matrix is diagonally dominant)
-    c = np.zeros(n)
-    d = np.zeros_like(q)
-    c[0], d[0] = sup[0] / diag[0], rhs[0] / diag[0]
-    for k in range(1, n):
-        den = diag[k] - sub[k] * c[k - 1]
-        c[k] = sup[k] / den
-        d[k] = (rhs[k] - sub[k] * d[k - 1]) / den
-    m = np.zeros_like(q)
-    m[-1] = d[-1]
-    for k in range(n - 2, -1, -1):
-        m[k] = d[k] - c[k] * m[k + 1]
-    return m
 
 
 def movej_duration(q_from: FloatArray, q_to: FloatArray, speed: float, accel: float) -> float:

@@ -6,8 +6,10 @@ are joint-space motions, straight when collision-free, otherwise RRT-Connect. Th
 within the cell's caps. Before a plan is returned, the cell's judge (`cell.limits.SafetyLimits.from_cell(cell)
 .check_path`, the check `execution.plan.check_plan` runs) passes its waypoints, the straight joint segments between
 them and its timed samples; a plan it refuses is a rejected grasp (reason 'path_cell_<check>' or, for a place
-branch, 'place_cell_<check>') and the next branch or grasp is tried. No feasible grasp is a result (status
-'no_feasible_grasp' with reason counts), not an error.
+branch, 'place_cell_<check>') and the next branch or grasp is tried. The servo commands execution would stream for
+the plan pass the driver's check too (`cell.stream.check_stream`): a plan whose stream exceeds a cap is re-timed
+with the jerk cap halved, down to a floor, else rejected ('path_stream_<check>'; `_timed_for_stream`). No feasible
+grasp is a result (status 'no_feasible_grasp' with reason counts), not an error.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 
 from normpos_grasp.cell.config import CellConfig, PlaceSpec
 from normpos_grasp.cell.limits import SafetyLimits
+from normpos_grasp.cell.stream import check_stream
 from normpos_grasp.collision.world import CollisionWorld
 from normpos_grasp.errors import PlanningError, SafetyViolation
 from normpos_grasp.geometry.transforms import invert_pose
@@ -654,23 +657,95 @@ def _judged_path(
     limits: SafetyLimits,
     timing: dict[str, float],
 ) -> tuple[tuple[Waypoint, ...], Trajectory, str]:
-    """`_build_path`, timed (`_time_pieces`; its ms added to timing['timing']) and judged by the cell as execution
-    judges plan.json (`limits.check_path` on the waypoints and the samples as plan.json rounds them); a plan the
-    cell refuses raises _PathRejected with reason 'path_cell_<check>'."""
+    """`_build_path`, timed and judged by `_timed_for_stream` (its ms added to timing['timing']): the cell judges
+    it as execution judges plan.json (`limits.check_path` on the waypoints and the samples as plan.json rounds
+    them) and the driver's check passes its servo stream (re-timed with a softer jerk cap where it does not); a
+    plan the cell refuses raises _PathRejected with reason 'path_cell_<check>', one whose stream no timing down to
+    the floor passes 'path_stream_<check>'."""
     waypoints, pieces, place_name = _build_path(ev, target, world, arm, cell, home, opts, limits)
-    t0 = time.perf_counter()
-    trajectory = _time_pieces(pieces, arm, cell, opts.timing)
-    timing["timing"] += (time.perf_counter() - t0) * 1e3
-    # the values plan.json carries (PickPlan.to_json rounds t to 1 us and q to 1e-9 rad): the judge sees those
-    # (Python's round on the samples as floats, as to_json does; tolist instead of a float() per element)
+    trajectory = _timed_for_stream(pieces, waypoints, arm, cell, opts.timing, limits, timing)
+    return waypoints, trajectory, place_name
+
+
+def _carried(trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
+    """The samples as plan.json carries them (PickPlan.to_json rounds t to 1 us and q to 1e-9 rad): what execution
+    judges and streams (Python's round on the samples as floats, as to_json does; tolist instead of a float() per
+    element)."""
     t = np.array([round(v, 6) for v in np.asarray(trajectory.t, dtype=np.float64).tolist()])
     q_rows = np.asarray(trajectory.q, dtype=np.float64)
     q = np.array([round(v, 9) for v in q_rows.ravel().tolist()]).reshape(q_rows.shape)
-    try:
-        limits.check_path([w.name for w in waypoints], np.stack([w.q for w in waypoints]), t, q)
-    except SafetyViolation as exc:
-        raise _PathRejected(f"the cell refuses the plan: {exc}", _cell_reason("path", exc)) from exc
-    return waypoints, trajectory, place_name
+    return t, q
+
+
+STREAM_CUTS = ("grasp", "place")
+"""The waypoints where execution ends one streamed piece and starts the next (the arm rests there while the gripper
+acts): `execution.plan.ExecuteOptions`' close_at and open_at."""
+
+
+def _stream_cuts(q: FloatArray, waypoints: Sequence[Waypoint]) -> list[int]:
+    """Sample indices (first 0, last the final waypoint's) where execution cuts the trajectory `q` (M, 6) into the
+    pieces it streams: each waypoint after the first matched in order to its nearest sample (as
+    `execution.plan._split_trajectory` does), kept where it is in STREAM_CUTS or the last."""
+    idx = [0]
+    for w in waypoints[1:]:
+        start = idx[-1]
+        idx.append(start + int(np.argmin(np.max(np.abs(q[start:] - w.q), axis=1))))
+    last = len(waypoints) - 1
+    return [0] + [idx[k] for k in range(1, len(waypoints)) if waypoints[k].name in STREAM_CUTS or k == last]
+
+
+def _timed_for_stream(
+    pieces: list[PathPiece],
+    waypoints: Sequence[Waypoint],
+    arm: ArmModel,
+    cell: CellConfig,
+    options: TimingOptions,
+    limits: SafetyLimits,
+    timing: dict[str, float],
+) -> Trajectory:
+    """The plan's trajectory (`_time_pieces`), judged by the cell as execution judges plan.json and streamable as
+    the driver streams it; its ms (timing and stream check) added to timing['timing'].
+
+    The samples as plan.json rounds them pass `limits.check_path` with the waypoints (else _PathRejected
+    'path_cell_<check>'). Then the servo commands: execution streams the trajectory in pieces cut where the gripper
+    acts (STREAM_CUTS), each as a cubic spline through its samples every options.stream_period_s, and the driver
+    refuses a whole piece whose commands exceed a cap (`GuardedDriver.follow_trajectory`); `cell.stream
+    .check_stream` runs that same check here. The spline overshoots the sampled profile at sharp acceleration
+    corners, the more the higher the jerk cap: at the default 100 rad/s^3 the commands of 30 unseen bins peaked at
+    0.9994 of the acceleration cap, so some unseen path will exceed it, and the driver would refuse that plan at
+    run time (nothing moves, but the pick is lost). A plan whose stream exceeds is re-timed with the jerk cap
+    halved (softer corners, less overshoot; only that plan pays the slower motion) down to
+    options.stream_jerk_floor_rad_s3; a stream still refused there (or a trapezoid timing, which no jerk cap
+    changes) is a rejected grasp, reason 'path_stream_<check>', and the next one is tried."""
+    names = [w.name for w in waypoints]
+    wq = np.stack([w.q for w in waypoints])
+    opts = options
+    while True:
+        t0 = time.perf_counter()
+        trajectory = _time_pieces(pieces, arm, cell, opts)
+        timing["timing"] += (time.perf_counter() - t0) * 1e3
+        t, q = _carried(trajectory)
+        try:
+            limits.check_path(names, wq, t, q)
+        except SafetyViolation as exc:
+            raise _PathRejected(f"the cell refuses the plan: {exc}", _cell_reason("path", exc)) from exc
+        t0 = time.perf_counter()
+        try:
+            check_stream(t, q, _stream_cuts(q, waypoints), limits, opts.stream_period_s)
+            return trajectory
+        except SafetyViolation as exc:
+            halved = 0.5 * opts.jerk_rad_s3
+            if opts.method != "ruckig" or halved < opts.stream_jerk_floor_rad_s3 * (1.0 - 1e-9):
+                check = exc.detail.get("check", "input") if isinstance(exc.detail, dict) else "input"
+                raise _PathRejected(
+                    f"the driver would refuse the plan's servo stream at jerk cap {opts.jerk_rad_s3:g} rad/s^3 "
+                    f"(re-timed down to the floor {opts.stream_jerk_floor_rad_s3:g}): {exc}",
+                    f"path_stream_{check}",
+                ) from exc
+            logger.debug("servo stream refused at jerk %g rad/s^3 (%s): re-timed at %g", opts.jerk_rad_s3, exc, halved)
+            opts = replace(opts, jerk_rad_s3=halved)
+        finally:
+            timing["timing"] += (time.perf_counter() - t0) * 1e3
 
 
 def _cell_reason(stage: str, exc: SafetyViolation) -> str:

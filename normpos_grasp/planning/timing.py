@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.cell.stream import STREAM_PERIOD_S
 from normpos_grasp.errors import PlanningError
 from normpos_grasp.records.plan import Trajectory
 from normpos_grasp.typing import ArrayLike, FloatArray
@@ -27,24 +28,40 @@ class TimingOptions:
     trapezoid: safety: share of the velocity cap (its square: of the acceleration cap) the profile plans for (the
     remainder absorbs the curvature of Cartesian segments in joint space).
 
-    ruckig: jerk_rad_s3: jerk cap of every joint, rad/s^3 (UR publishes none; 10x the example cell's 5 rad/s^2
-    reaches full acceleration in 0.1 s). cap_share: share of the velocity, acceleration and jerk caps the profiles
-    plan for (the rest absorbs the rounding of plan.json and of the servo stream). blend: pass through waypoints
-    without a gripper action at speed where the path allows it (False: rest at every waypoint). check_step_rad:
-    largest joint step between collision checks of a blended joint motion, rad (the planner's edge resolution).
+    ruckig: jerk_rad_s3: jerk cap of every joint, rad/s^3 (UR publishes none; 20x the example cell's 5 rad/s^2
+    reaches full acceleration in 0.05 s, 2.5 samples of 20 ms). It is bounded by the servo stream: execution sends a
+    cubic spline through the 20 ms samples every 8 ms and checks those commands against the caps; the spline's
+    accelerations exceed the profile's the more the sharper its corners: with 0.97 of the caps planned the streamed
+    commands peak at 0.98 of the acceleration cap at 50 rad/s^3, 0.99 at 100, and above the cap (1.00-1.04, the
+    driver refuses them) at 150-200 (`benchmarks/bench_cycle.py`). 0.99 leaves no margin an unseen path is sure to
+    keep, so the planner checks every plan's stream as the driver will (`cell.stream.check_stream`, pieces at
+    stream_period_s, s: the driver's default period) and re-times a plan whose stream exceeds with the jerk cap
+    halved, down to stream_jerk_floor_rad_s3 (below it the plan is refused: 'path_stream_<check>'): a plan the
+    driver would refuse at run time (nothing moves, but the pick is lost) is never emitted, and the faster cap is
+    kept wherever its stream passes (`planning.plan._timed_for_stream`). cap_share: share of the velocity,
+    acceleration and jerk caps the profiles plan for (the rest absorbs the rounding of plan.json and of the servo
+    stream). blend: pass through waypoints without a gripper action at speed where the path allows it (False: rest
+    at every waypoint). check_step_rad: largest joint step between collision checks of a blended joint motion, rad
+    (the planner's edge resolution).
     """
 
     dt_s: float = 0.02
     safety: float = 0.9
     method: str = "ruckig"
-    jerk_rad_s3: float = 50.0
+    jerk_rad_s3: float = 100.0
     cap_share: float = 0.97
     blend: bool = True
     check_step_rad: float = 0.03
+    stream_period_s: float = STREAM_PERIOD_S
+    stream_jerk_floor_rad_s3: float = 25.0
 
     def __post_init__(self) -> None:
         if self.method not in ("ruckig", "trapezoid"):
             raise PlanningError(f"timing method {self.method!r}: choose 'ruckig' or 'trapezoid'")
+        for name in ("jerk_rad_s3", "stream_period_s", "stream_jerk_floor_rad_s3"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0.0):
+                raise PlanningError(f"timing {name} = {value!r}: must be positive and finite")
 
 
 def _trapezoid(length: float, v: float, a: float) -> tuple[float, float, float]:
@@ -366,8 +383,9 @@ def time_path(
     Cartesian lines keep their geometry (q(s) spline through the line's IK samples) with a 1-DoF profile of the
     travel s; straight joint edges resting at both ends are followed exactly (1-DoF profile of the edge
     parameter, the leading joint at its caps); a joint edge with a `free` test meets the neighbouring lines at
-    their cruise speed instead of stopping (a 6-DoF time-synchronised profile, checked for collisions and joint
-    limits, else resting at its ends). Two consecutive collinear lines pass their common end at speed. Every sample
+    their cruise speed and the neighbouring joint edges with a `free` test at `_via_velocity` instead of stopping
+    (a 6-DoF time-synchronised profile through the exact waypoint, checked for collisions and joint limits, else
+    resting at its ends). Two consecutive collinear lines pass their common end at speed. Every sample
     is then checked against the caps (finite differences, as execution.safety does) and the limits; raises
     PlanningError when a cap is exceeded.
     """
@@ -408,6 +426,8 @@ def time_path(
                 speed[k] = la.v_max
             elif lb is not None and a.tcp is None and a.free is not None:
                 speed[k] = lb.v_max
+            elif la is None and lb is None and a.free is not None and b.free is not None:
+                speed[k] = 1.0  # two joint edges: through their common end at `_via_velocity`
     done: dict[tuple[int, float, float], tuple[str, Any, Any]] = {}  # profiles found, by piece and passing speeds
     for _ in range(4 * n + 8):
         profiles, retry = _profiles(pieces, lines, speed, caps, lower, upper, opts, done)
@@ -480,8 +500,15 @@ def _profiles(
             done[key] = ("edge", traj, (a, b))
             out.append(done[key])
             continue
-        start = lines[k - 1].joint_state(True, v_in) if v_in > 0.0 else (a, np.zeros(6), np.zeros(6))
-        goal = lines[k + 1].joint_state(False, v_out) if v_out > 0.0 else (b, np.zeros(6), np.zeros(6))
+        start, goal = (a, np.zeros(6), np.zeros(6)), (b, np.zeros(6), np.zeros(6))
+        if v_in > 0.0:
+            prev = lines.get(k - 1)
+            start = (
+                prev.joint_state(True, v_in) if prev is not None else (a, _via_velocity(pieces, k - 1, caps), start[2])
+            )
+        if v_out > 0.0:
+            nxt = lines.get(k + 1)
+            goal = nxt.joint_state(False, v_out) if nxt is not None else (b, _via_velocity(pieces, k, caps), goal[2])
         try:
             traj = _ruckig(start, goal, caps)
             ok = _blend_ok(traj, p, lower, upper, caps[0], opts.check_step_rad)
@@ -496,6 +523,17 @@ def _profiles(
         done[key] = ("joints", traj, (a, b))
         out.append(done[key])
     return out, False
+
+
+def _via_velocity(pieces: list[PathPiece], k: int, caps: tuple[FloatArray, FloatArray, FloatArray]) -> FloatArray:
+    """Joint velocity (6,) rad/s at the common end of joint edges k and k + 1: per joint, the smaller of the two
+    edges' mean velocities over their rest-to-rest times (`joint_motion_s`) where both move it the same way, 0
+    where they turn it back or leave it (a joint never runs past the via to come back)."""
+    a, w, b = pieces[k].points[0], pieces[k].points[-1], pieces[k + 1].points[-1]
+    v1 = (w - a) / max(joint_motion_s(a, w, caps), 1e-9)
+    v2 = (b - w) / max(joint_motion_s(w, b, caps), 1e-9)
+    same = np.sign(v1) * np.sign(v2) > 0
+    return np.where(same, np.sign(v1) * np.minimum(np.abs(v1), np.abs(v2)), 0.0)  # within the caps: means
 
 
 def _blend_ok(traj: Any, piece: PathPiece, lower: FloatArray, upper: FloatArray, vcap: FloatArray, step: float) -> bool:
