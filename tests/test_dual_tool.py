@@ -144,6 +144,8 @@ def test_a_cube_by_the_wall_is_grasped_with_the_cup_away_from_it() -> None:
     y = float(wall.world_from_box[1, 3] - wall.size[1] / 2) - 0.055
     plan = plan_pick([_fit(cube, (0.5, y, 0.03))], [], DUAL)
     assert plan.status == "ok" and plan.chosen is not None and plan.tool.name == "2f85"
+    # the pass that found it is on the plan: the turned copies carry '@turn' in their id, the first pass's do not
+    assert plan.planning_pass == ("turned" if "@turn" in plan.chosen.candidate.grasp_id else "first")
     tcp = plan.chosen.world_from_tcp[2] if plan.chosen.world_from_tcp is not None else None
     assert tcp is not None
     cup_y = (tcp @ next(s for s in JAWS.shapes if s.name == "idle/suction_30/cup").tcp_from_shape)[1, 3]

@@ -54,8 +54,10 @@ def test_a_part_by_the_wall_gets_a_leaned_grasp_that_passes_every_check(
     fits = [_fit(part, pose)]
     before = plan_pick(fits, [], cell, PlanOptions(leans=None))
     assert before.status == "no_feasible_grasp" and before.counts.get("collision_cell", 0) > 0  # the wall
+    assert before.planning_pass == ""  # no grasp, no pass
     plan = plan_pick(fits, [], cell, PlanOptions())
     assert plan.status == "ok" and plan.chosen is not None, plan.counts
+    assert plan.planning_pass == "leaned"  # the plan says which pass found its grasp (simulate's picks.csv)
     c = plan.chosen.candidate
     assert any(f"@{way}" in c.grasp_id for way in ("lean", "spin", "slide")), c.grasp_id
     assert c.world_from_tcp[2, 2] < -np.cos(lean.LeanOptions().max_from_down_rad)  # from above
@@ -144,7 +146,7 @@ def test_the_leaned_pass_does_not_run_where_the_first_pass_plans(
 
     monkeypatch.setattr(plan_module, "wall_leans", counted)
     plan = plan_pick([free], [], cell, PlanOptions())
-    assert plan.status == "ok" and not calls
+    assert plan.status == "ok" and not calls and plan.planning_pass == "first"
     without = plan_pick([free], [], cell, PlanOptions(leans=None))
     doc, doc_without = plan.to_json(), without.to_json()
     doc.pop("timing_ms"), doc_without.pop("timing_ms")

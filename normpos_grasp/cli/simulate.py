@@ -140,6 +140,7 @@ def _run(args: argparse.Namespace) -> int:
     from normpos_grasp.simulate.batch import (
         BatchResult,
         RunFolder,
+        format_breakdown,
         run_batch,
         run_parameters,
         timing_summary,
@@ -231,6 +232,7 @@ def _run(args: argparse.Namespace) -> int:
     from normpos_grasp.simulate.trace import format_cause_table
 
     print(format_cause_table(summary["causes"]))
+    print(format_breakdown(summary))
     print(
         f"{timing['picks']} picks in {wall:.1f} s ({timing['picks_per_minute']:.1f} picks/min"
         + (f"; {len(done)} scenes resumed" if done else "")

@@ -52,6 +52,8 @@ from normpos_grasp.typing import BoolArray, FloatArray
 logger = logging.getLogger(__name__)
 
 WAYPOINTS = ("home", "entry", "pre_grasp", "grasp", "lift", "retreat", "pre_place", "place", "post_place")
+#: `PickPlan.planning_pass` of a plan with a grasp, in the order `_plan_tool` runs the passes
+PLANNING_PASSES = ("first", "turned", "leaned")
 
 
 @dataclass(frozen=True)
@@ -273,19 +275,19 @@ def _plan_tool(
     approach axis (`_turned`: the same grasps with the idle body on another side); the turned copies go in a second
     pass so that they do not take the feasible slots of other grasps in the first. Still without a plan, the grasps
     the cell's boxes block are planned once more leaned away from them (`PlanOptions.leans`, `_plan_once`'s
-    'leaned')."""
+    'leaned'). The plan's `planning_pass` names the pass that found its grasp ('' with none)."""
     plan = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, "")
+    if plan.status == "ok":
+        return replace(plan, planning_pass="first")
     passes = []
     if any(s.name.startswith(IDLE_PREFIX) for s in cell.tool.shapes):
         passes.append("turned")
     if opts.leans is not None and cell.tool.kind == "parallel":
         passes.append("leaned")
     for variant in passes:
-        if plan.status == "ok":
-            break
         again = _plan_once(targets, templates, normpositions, world, arm, cell, home, opts, timing, t_start, variant)
         if again.status == "ok":
-            return again
+            return replace(again, planning_pass=variant)
         counts = Counter(plan.counts)
         counts.update(again.counts)
         plan = replace(

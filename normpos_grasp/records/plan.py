@@ -100,7 +100,10 @@ class PickPlan:
     cell: the cell it was planned in ({name, path, sha256} of the cell file; empty for a cell built in memory):
     `execute` judges the plan against that cell when no --cell is given.
     bin: the bin the part is taken from and bins_empty: the bins this frame showed no part in, in a cell with
-    several bins (plan.json then carries "bin" and "bins_empty"; '' and () in a one-bin cell)."""
+    several bins (plan.json then carries "bin" and "bins_empty"; '' and () in a one-bin cell).
+    planning_pass: the planning pass whose candidates gave the chosen grasp ('first': as synthesised; 'turned': a
+    dual-tool flange's copies turned about the approach axis; 'leaned': copies leaned away from the cell's boxes;
+    `planning.plan.PLANNING_PASSES`), '' for a plan with no grasp."""
 
     status: PlanStatus
     robot: str
@@ -118,6 +121,7 @@ class PickPlan:
     cell: dict[str, str] = field(default_factory=dict)
     bin: str = ""
     bins_empty: tuple[str, ...] = ()
+    planning_pass: str = ""
 
     def to_json(self) -> dict[str, Any]:
         """The documented plan.json mapping (docs/grasping.md)."""

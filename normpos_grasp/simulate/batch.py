@@ -35,7 +35,8 @@ import numpy as np
 from normpos_grasp import __version__
 from normpos_grasp.atomic import atomic_write_bytes, atomic_write_text
 from normpos_grasp.errors import InputError, MissingDependency, SimulationError
-from normpos_grasp.simulate.episode import CAUSES, PickRecord, SceneResult, SimulationConfig, run_scene
+from normpos_grasp.planning.plan import PLANNING_PASSES
+from normpos_grasp.simulate.episode import CAUSES, KINDS, PickRecord, SceneResult, SimulationConfig, run_scene
 from normpos_grasp.simulate.signals import Interrupted, init_worker, signals_deferred, signals_ignored, signals_raise
 from normpos_grasp.simulate.trace import LeftPart, cause_rows
 
@@ -79,7 +80,16 @@ CSV_COLUMNS = (
     "drags",
     "detail",
     "picture",
+    "grasp_id",
+    "kind",
+    "plan_pass",
+    "relaxed",
+    "predicted_success",
 )
+#: summary key of the picks with no grasp chosen (give-ups) in the per-kind and per-pass breakdowns
+NO_GRASP = "(no grasp)"
+#: upper edges of the predicted-success bins of the calibration table (the first bin starts at 0, the last holds 1)
+CALIBRATION_EDGES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 
 MANIFEST_FORMAT = "normpos-grasp/simulate-run@1"
 SCENE_FORMAT = "normpos-grasp/simulate-scene@1"
@@ -435,8 +445,79 @@ def summarise(result: BatchResult) -> dict[str, Any]:
         "failures_by_cause": causes,
         "physics_outcomes": dict(sorted(physics.items())),
         "by_part": dict(sorted(by_part.items())),
+        "by_kind": held_by(picks, "kind", KINDS),
+        "by_plan_pass": held_by(picks, "plan_pass", PLANNING_PASSES),
+        "calibration": calibration(picks),
         "causes": cause_rows(result.scenes),
     }
+
+
+def held_by(picks: Collection[PickRecord], field: str, order: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+    """Picks, held picks and held % for each value of the record's `field` ('kind' or 'plan_pass') in `order`, then
+    NO_GRASP for the picks without a grasp ('' in the field); only values with picks. The picks add up to all picks
+    and the held to all held. A value outside `order` is an error (a record this code did not write)."""
+    counts: dict[str, list[int]] = {}
+    for p in picks:
+        value = str(getattr(p, field)) or NO_GRASP
+        if value != NO_GRASP and value not in order:
+            raise InputError(f"pick {p.scene}/{p.pick}: {field} {value!r} is not one of {order}")
+        entry = counts.setdefault(value, [0, 0])
+        entry[0] += 1
+        entry[1] += int(p.success)
+    return {
+        k: {"picks": counts[k][0], "held": counts[k][1], "held_pct": round(100.0 * counts[k][1] / counts[k][0], 2)}
+        for k in (*order, NO_GRASP)
+        if k in counts
+    }
+
+
+def calibration(picks: Collection[PickRecord]) -> list[dict[str, Any]]:
+    """Predicted against observed success of the grasps physics judged (a chosen grasp replayed in MuJoCo; picks
+    without a physics outcome are left out), per predicted-success bin of CALIBRATION_EDGES (populated bins only,
+    in increasing order): the bin's edges, picks, held, mean predicted success and observed held share."""
+    bins: dict[int, list[float]] = {}
+    for p in picks:
+        if not p.physics or not math.isfinite(p.predicted_success):
+            continue
+        k = next((i for i, hi in enumerate(CALIBRATION_EDGES) if p.predicted_success < hi), len(CALIBRATION_EDGES) - 1)
+        entry = bins.setdefault(k, [0.0, 0.0, 0.0])
+        entry[0] += 1
+        entry[1] += float(p.success)
+        entry[2] += float(p.predicted_success)
+    out = []
+    for k in sorted(bins):
+        n, held, predicted = bins[k]
+        out.append(
+            {
+                "low": CALIBRATION_EDGES[k - 1] if k > 0 else 0.0,
+                "high": CALIBRATION_EDGES[k],
+                "picks": int(n),
+                "held": int(held),
+                "predicted": round(predicted / n, 4),
+                "observed": round(held / n, 4),
+            }
+        )
+    return out
+
+
+def format_breakdown(summary: Mapping[str, Any]) -> str:
+    """The per-kind held table and the calibration table of a summary as fixed-width text lines (the console's)."""
+    lines = ["picks by grasp kind (what produced the chosen grasp; no grasp: give-ups):"]
+    lines.append(f"{'kind':<12} {'picks':>6} {'held':>6} {'held %':>7}")
+    for kind, r in summary["by_kind"].items():
+        lines.append(f"{kind:<12} {r['picks']:>6} {r['held']:>6} {r['held_pct']:>7.1f}")
+    passes = ", ".join(f"{k} {r['held']}/{r['picks']}" for k, r in summary["by_plan_pass"].items() if k != NO_GRASP)
+    lines.append(f"by planner pass: {passes or 'none'}")
+    rows = summary["calibration"]
+    if not rows:
+        lines.append("calibration: no grasp was judged in physics")
+        return "\n".join(lines)
+    lines.append("calibration (grasps judged in physics, by predicted success):")
+    lines.append(f"{'bin':<10} {'picks':>6} {'held':>6} {'predicted':>10} {'observed':>9}")
+    for r in rows:
+        edges = f"{r['low']:.1f}-{r['high']:.1f}"
+        lines.append(f"{edges:<10} {r['picks']:>6} {r['held']:>6} {r['predicted']:>10.3f} {r['observed']:>9.3f}")
+    return "\n".join(lines)
 
 
 def _csv_value(value: Any) -> str:
@@ -484,11 +565,26 @@ def failures_page(summary: Mapping[str, Any]) -> str:
         )
     held = f"{summary['picks_succeeded']} / {summary['picks_attempted']} picks held"
     cleared = f"{summary['scenes_cleared']} / {summary['scenes']} bins cleared"
+    kinds = "".join(
+        f"<tr><td>{html.escape(k)}</td><td>{r['picks']}</td><td>{r['held']}</td><td>{r['held_pct']:.1f}</td></tr>"
+        for k, r in summary["by_kind"].items()
+    )
+    bins = "".join(
+        f"<tr><td>{r['low']:.1f}-{r['high']:.1f}</td><td>{r['picks']}</td><td>{r['held']}</td>"
+        f"<td>{r['predicted']:.3f}</td><td>{r['observed']:.3f}</td></tr>"
+        for r in summary["calibration"]
+    )
     return (
         "<!doctype html><html><head><meta charset='utf-8'><title>simulate: failures by cause</title></head><body>"
         f"<h1>Failures by cause</h1><p>{held}; {cleared}; {summary['parts_left_in_bin']} parts left in bins</p>"
         "<table border='1' cellpadding='4'><tr><th>stage</th><th>detail</th><th>failed picks</th>"
-        "<th>parts left</th><th>picture</th></tr>" + "".join(rows) + "</table></body></html>\n"
+        "<th>parts left</th><th>picture</th></tr>" + "".join(rows) + "</table>"
+        "<h2>Picks by grasp kind</h2><table border='1' cellpadding='4'><tr><th>kind</th><th>picks</th><th>held</th>"
+        "<th>held %</th></tr>" + kinds + "</table>"
+        "<h2>Predicted against observed success (grasps judged in physics)</h2><table border='1' cellpadding='4'>"
+        "<tr><th>predicted bin</th><th>picks</th><th>held</th><th>mean predicted</th><th>observed</th></tr>"
+        + bins
+        + "</table></body></html>\n"
     )
 
 

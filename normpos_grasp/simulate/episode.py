@@ -39,7 +39,7 @@ from normpos_grasp.measure.measure import MeasureOptions
 from normpos_grasp.perception.change import mask_iou
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, ReuseOptions, perceive
 from normpos_grasp.planning.evaluate import EvaluationOptions
-from normpos_grasp.planning.plan import rejections_by_target, stop_line
+from normpos_grasp.planning.plan import predicted_success, rejections_by_target, stop_line
 from normpos_grasp.planning.push import Push, PushHand
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
@@ -50,6 +50,9 @@ from normpos_grasp.typing import FloatArray
 logger = logging.getLogger(__name__)
 
 CAUSES = ("segmentation_miss", "wrong_fit", "no_feasible_grasp", "physics_drop", "collision")
+#: what produced a pick's grasp (`PickRecord.kind`, `grasp_kind`): the planner's passes (`PLANNING_PASSES`:
+#: 'first', 'turned', 'leaned'), simulate's relaxed-margin pass, or a manipulation made before it ('drag', 'push')
+KINDS = ("first", "turned", "leaned", "relaxed", "drag", "push")
 SEGMENTERS = ("model", "gt", "depth")
 
 
@@ -147,7 +150,11 @@ class PickRecord:
     nudges: pushes made before this pick (nudge_collisions of them hit the cell; drags of them were drags).
     detail: the failure's finer cause (`simulate.trace`: the commonest rejection reason, the physics outcome, what
     the hand hit, ...); picture: the failure's picture, relative to the run folder ('' for a held pick).
-    Times in milliseconds."""
+    grasp_id: the chosen grasp's id (the plan's candidate; '' when no grasp was chosen); kind: what produced it
+    (`grasp_kind`, one of KINDS; ''); plan_pass: the planner's pass that found it (`PickPlan.planning_pass`:
+    'first', 'turned', 'leaned'; ''); relaxed: planned with simulate's relaxed margins (`relaxed_evaluation`);
+    predicted_success: the grip mechanics' predicted success of the grasp (`planning.plan.predicted_success`, with
+    the options it was planned with; nan when no grasp was chosen). Times in milliseconds."""
 
     scene: int
     pick: int
@@ -174,12 +181,38 @@ class PickRecord:
     detail: str = ""
     picture: str = ""
     drags: int = 0
+    grasp_id: str = ""
+    kind: str = ""
+    plan_pass: str = ""
+    relaxed: bool = False
+    predicted_success: float = float("nan")
 
     def row(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for key, value in self.__dict__.items():
             out[key] = round(value, 6) if isinstance(value, float) else value
         return out
+
+
+@dataclass(frozen=True)
+class GraspOrigin:
+    """Where a pick's chosen grasp came from (the `PickRecord` fields of the same names)."""
+
+    grasp_id: str
+    kind: str
+    plan_pass: str
+    relaxed: bool
+    predicted_success: float
+
+
+def grasp_kind(plan_pass: str, relaxed: bool, manipulation: str) -> str:
+    """The one kind (of KINDS) a pick's grasp is counted under: the last manipulation made for the pick ('drag',
+    'push': the part was moved before the grasp was planned), else 'relaxed' when simulate's relaxed-margin pass
+    planned it, else the planner's pass (`PickPlan.planning_pass`). The parts are kept apart in `PickRecord`."""
+    kind = manipulation or ("relaxed" if relaxed else plan_pass)
+    if kind not in KINDS:
+        raise ValueError(f"grasp kind {kind!r} (pass {plan_pass!r}, manipulation {manipulation!r}) is not in {KINDS}")
+    return kind
 
 
 @dataclass(frozen=True)
@@ -416,6 +449,8 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         t0 = time.perf_counter()
         view = 0  # the wrist camera's capture pose: the first, then the next one for each retry
         captures = fitted = reused = nudges = hits = drags = 0
+        manipulation = ""  # the last nudge made for this pick ('drag' or 'push')
+        relaxed_used = False  # the plan came from the relaxed-margin pass
         retries_left, nudges_left = config.perception_retries, config.max_nudges
         last = previous if config.reuse_fits else None
         blocked = ""  # why the arm could not reach the capture pose
@@ -436,11 +471,12 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             fitted += len(seen.fits) - seen.result.reused_fits
             reused += seen.result.reused_fits
             plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options, start_q)
+            relaxed_used = False
             if plan.status != "ok" and config.relaxed_plan:
                 relaxed = replace(plan_options, evaluation=config.relaxed_evaluation)
                 second = plan_pick(seen.fits, seen.normpositions, cell, relaxed, start_q)
                 if second.status == "ok":
-                    plan = second
+                    plan, relaxed_used = second, True
             if plan.status == "ok" and plan.chosen is not None:
                 break
             nudge = None
@@ -456,6 +492,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 nudges_left -= 1
                 nudges += 1
                 drags += int(nudge.kind == "drag")
+                manipulation = nudge.kind
                 hits += int(pushed.outcome == "collision")
                 arm_q = nudge_q  # the arm carried the push out: it stands where the motion ended
                 keep = [j for j in range(len(templates)) if _in_bin(pushed.world_from_objects_final[j], cell, floor_z)]
@@ -524,6 +561,14 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             break
         cand = plan.chosen.candidate
         target = plan.targets[cand.target]
+        used = replace(plan_options, evaluation=config.relaxed_evaluation) if relaxed_used else plan_options
+        origin = GraspOrigin(
+            cand.grasp_id,
+            grasp_kind(plan.planning_pass, relaxed_used, manipulation),
+            plan.planning_pass,
+            relaxed_used,
+            predicted_success(plan, used),
+        )
         if plan.waypoints:  # the arm carries the plan out whatever physics says: the next capture move starts there
             arm_q = np.asarray(plan.waypoints[-1].q, dtype=np.float64)
         inst = next((i for i in instances if i.instance_id == target.instance_id), None)
@@ -538,7 +583,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 _record(
                     scene_index, pick, "segmentation_miss", "", target.template, cand.scheme, None, np.nan, np.nan,
                     np.nan, len(templates), counts, pipeline_ms, 0.0, "the chosen instance covers no part",
-                    "chosen instance covers no part", name,
+                    "chosen instance covers no part", name, origin,
                 )
             )  # fmt: skip
             failures += 1
@@ -586,7 +631,7 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
         records.append(
             _record(
                 scene_index, pick, cause, templates[k].name, target.template, cand.scheme, result, depth, occlusion,
-                fit_err, len(templates), counts, pipeline_ms, physics_ms, result.reason, detail, name,
+                fit_err, len(templates), counts, pipeline_ms, physics_ms, result.reason, detail, name, origin,
             )
         )  # fmt: skip
         # the scene as physics left it
@@ -735,6 +780,7 @@ def _record(
     reason: str,
     detail: str = "",
     picture: str = "",
+    origin: GraspOrigin | None = None,
 ) -> PickRecord:
     return PickRecord(
         scene=scene,
@@ -762,4 +808,9 @@ def _record(
         physics_ms=float(physics_ms),
         detail=detail,
         picture=picture,
+        grasp_id=origin.grasp_id if origin is not None else "",
+        kind=origin.kind if origin is not None else "",
+        plan_pass=origin.plan_pass if origin is not None else "",
+        relaxed=origin.relaxed if origin is not None else False,
+        predicted_success=float(origin.predicted_success) if origin is not None else float("nan"),
     )
