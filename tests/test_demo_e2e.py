@@ -17,11 +17,12 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from loopback import loopback_host
 from test_report_viewer import _render_status
 
 from normpos_grasp.cli.main import main
 
-DEMO_HOST = "127.0.0.93"  # one emulator per loopback address; the execution tests use others
+DEMO_HOST = loopback_host(93)  # one emulator per loopback address; the execution tests use others
 PLAN_KEYS = {
     "format",
     "status",

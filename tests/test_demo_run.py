@@ -12,11 +12,12 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from loopback import loopback_host
 
 from normpos_grasp.cell import load_cell
 from normpos_grasp.cli.main import main
 
-RUN_HOST = "127.0.0.94"  # one emulator per loopback address; the execution tests use others
+RUN_HOST = loopback_host(94)  # one emulator per loopback address; the execution tests use others
 PACKAGED = resources.files("normpos_grasp.examples")
 
 

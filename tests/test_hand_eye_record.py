@@ -9,13 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import loopback_host
 
 from normpos_grasp.camera.hand_eye_io import read_poses_csv
 from normpos_grasp.cli.calibrate_hand_eye import record_poses
 from normpos_grasp.errors import InputError
 from normpos_grasp.sim.ur_emulator import EmulatorProcess
 
-HOST = "127.0.0.71"  # one emulator per address; this one is used by no other test
+HOST = loopback_host(71)  # one emulator per address; this one is used by no other test
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from loopback import loopback_host
 
 from normpos_grasp.cell import resolve_cell
 from normpos_grasp.cli.main import main
@@ -188,7 +189,7 @@ def test_executed_cycle_keeps_report_and_rtde_state_trace(tmp_path: Path, capsys
     execution report and the RTDE state trace, and `normpos-grasp replay` in a fresh process reproduces the plan."""
     from normpos_grasp.sim.ur_emulator.process import EmulatorProcess
 
-    host = "127.0.0.122"
+    host = loopback_host(122)
     bundles = tmp_path / "bundles"
     with EmulatorProcess(host, "ur5e", log_path=tmp_path / "emulator.log", verbose=0):
         code = main(["run", "--cell", "ur5e_bin_parallel", "--source", "synthetic:2", "--seed", "0", "--robot", host,

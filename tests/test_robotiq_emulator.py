@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from loopback import loopback_host
 
 from normpos_grasp.cell import load_cell
 from normpos_grasp.cell.gripper_driver import RobotiqDriverSpec
@@ -22,7 +23,7 @@ from normpos_grasp.execution.gripper_config import ArmIOGripper
 from normpos_grasp.execution.robotiq import RobotiqGripper
 from normpos_grasp.sim.ur_emulator import EmulatorProcess
 
-HOST = "127.0.0.161"  # one emulator per loopback address; no other test uses this one
+HOST = loopback_host(161)  # one emulator per loopback address; no other test uses this one
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 OPENING = 0.0437  # m: the plan's jaw opening
 
