@@ -299,6 +299,12 @@ class Campaign:
         machine."""
         try:
             self._wait_moving_or_raise(proc, timeout_s, hold_s)
+        except DriverTimeout as exc:
+            if proc.poll() is None:
+                proc.kill()
+            _out, err = proc.communicate(timeout=10.0)
+            said = [line for line in (err or "").splitlines() if line.strip()][-3:]
+            raise DriverTimeout(f"{exc}; its stderr: {' | '.join(said) or '(nothing)'}") from exc
         except BaseException:
             if proc.poll() is None:
                 proc.kill()
