@@ -940,8 +940,12 @@ def extend_segmenter(
         budget_s=budget, log=lambda msg: note(f"segmenter: {msg}"),
     )  # fmt: skip
     new = report.figures.get("tuned new", {})
-    note(
-        f"segmenter: taught {', '.join(report.new_labels)} on {report.frames} frames; held-back new parts recall "
-        f"{new.get('recall', float('nan')):.2f}, precision {new.get('precision', float('nan')):.2f}"
+    checked = (
+        f"on {report.val_frames} held-back frames recall {new['recall']:.2f}, precision {new['precision']:.2f} of "
+        f"{new['gt']:.0f} new-part instances"
+        if new.get("gt", 0) > 0
+        else f"no new part large enough to count in its {report.val_frames} held-back frames (a larger budget "
+        "validates on more)"
     )
+    note(f"segmenter: taught {', '.join(report.new_labels)} on {report.frames} frames; {checked}")
     return report.model_path
