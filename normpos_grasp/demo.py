@@ -24,7 +24,7 @@ from normpos_grasp.cell.config import CellConfig, resolve_cell
 from normpos_grasp.errors import InputError, NormposError
 from normpos_grasp.execution.driver import ArmDriver
 from normpos_grasp.loop import PickRecord, SyntheticBinSource, run_cell_loop
-from normpos_grasp.perception.factory import SegmenterChoice, choose_segmenter
+from normpos_grasp.perception.factory import SegmenterChoice, choose_segmenter, library_model
 from normpos_grasp.planning.plan import rejections_by_target, stop_line
 from normpos_grasp.report.frame import frame_overlay, frame_twin
 from normpos_grasp.report.html import report_page, table_html, write_page
@@ -74,11 +74,14 @@ class DemoResult:
     summary: dict[str, Any]
 
 
-def demo_segmenter(kind: str, source: SyntheticBinSource | None = None) -> SegmenterChoice:
-    """The requested segmenter ('model' falls back to the depth segmenter, logged, when the bundled model cannot be
-    loaded); 'gt' takes the synthetic bin's true masks (needs `source`): it checks everything after segmentation."""
+def demo_segmenter(
+    kind: str, source: SyntheticBinSource | None = None, model_path: str | Path | None = None
+) -> SegmenterChoice:
+    """The requested segmenter ('model': the model at `model_path`, default the bundled one, falling back to the
+    depth segmenter, logged, when it cannot be loaded); 'gt' takes the synthetic bin's true masks (needs `source`):
+    it checks everything after segmentation."""
     truth = source.ground_truth_segmenter if source is not None else None
-    return choose_segmenter("auto" if kind == "model" else kind, ground_truth=truth)
+    return choose_segmenter("auto" if kind == "model" else kind, model_path, ground_truth=truth)
 
 
 @contextlib.contextmanager
@@ -143,7 +146,7 @@ def run_demo(
 
     library = list(resolve_library(opts.library))
     source = SyntheticBinSource(cell, opts.parts, opts.seed, opts.sensor, library, parts=opts.part_names)
-    choice = demo_segmenter(opts.segmenter, source)
+    choice = demo_segmenter(opts.segmenter, source, library_model(opts.library))
     segmenter, seg_kind = choice.segmenter, choice.kind
     step("starting the loopback UR controller")
     with arm_driver(cell, opts, out / "emulator.log") as (driver, driver_kind, note):

@@ -24,9 +24,12 @@ Steps of `teach_part` (all lengths in metres once loaded):
 5. The template is written (template.yaml + mesh in mm + obj_id + a `teach:` record of all of the above), read
    back, and its fit preparation stored in its `.prepared/` folder (templates.prepared), so the first fit of a
    process pays no preparation; report.html shows the resting poses and the tried grasps with their rates.
+6. With `segmenter_budget_s` > 0 (`extend_segmenter`, once for all parts): the bundled segmentation model is taught
+   the library's parts by a head refit on its frozen trunk (training.head_tune, within the budget) and stored as
+   OUT/segmenter/normpos_seg.onnx + MODEL_CARD.md, which every command given `--library OUT` uses.
 
-`teach` runs every part in a staging folder inside OUT and moves each finished part folder into OUT only when
-every part succeeded: bad CAD leaves OUT as it was.
+`teach` runs every part (and step 6) in a staging folder inside OUT and moves each finished part folder (and the
+model) into OUT only when every part succeeded: bad CAD, a bad budget or a failed step 6 leave OUT as it was.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ import numpy as np
 from normpos_grasp.atomic import atomic_write_text
 from normpos_grasp.errors import InputError, MeshError, TemplateError
 from normpos_grasp.geometry.transforms import look_at, make_pose, rotation_from_quaternion
+from normpos_grasp.perception.factory import LIBRARY_SEGMENTER_DIR
 from normpos_grasp.records.template import GraspAnnotation, Template
 from normpos_grasp.templates.library import (
     MESH_SUFFIXES,
@@ -85,7 +89,8 @@ class TeachOptions:
     grasps_per_pose: grasps tried per resting pose. trials: trials per grasp and pose (1 nominal, 2 displaced,
     3 shaken). min_success: grasps tried with a lower success rate are dropped. max_grasps: most grasps stored
     (every tried and kept one, then untried ones by synthesis quality). seed: every random draw.
-    report: write report.html.
+    report: write report.html. segmenter_budget_s: wall-time budget of step 6, extending the library's segmenter
+    with the new parts (0: skip); segmenter_cell: the cell whose bins it is taught on (packaged name or YAML).
     """
 
     units: str = "mm"
@@ -100,6 +105,8 @@ class TeachOptions:
     max_grasps: int = 300
     seed: int = 0
     report: bool = True
+    segmenter_budget_s: float = 0.0
+    segmenter_cell: str = "ur5e_bin_parallel"
 
     def __post_init__(self) -> None:
         if self.units not in UNITS:
@@ -110,6 +117,8 @@ class TeachOptions:
             raise InputError(f"material must be one of {sorted(DENSITY)}, got {self.material!r}")
         if not 1 <= self.trials <= 3:
             raise InputError(f"trials must be 1..3, got {self.trials}")
+        if not 0.0 <= self.segmenter_budget_s <= 7200.0:  # also refuses NaN
+            raise InputError(f"the segmenter budget must lie in 0..7200 s, got {self.segmenter_budget_s} s")
 
 
 @dataclass(frozen=True, eq=False)
@@ -762,6 +771,8 @@ def teach(
     if dup:
         raise InputError(f"two inputs give the same part name {dup}; rename one of the files")
     for t in checked:
+        if t.name == LIBRARY_SEGMENTER_DIR:  # the library's model folder
+            raise InputError(f"a part may not be named '{t.name}' (the library keeps its segmenter there); rename it")
         if (root / t.name).exists() and not overwrite:
             raise InputError(f"{root / t.name} exists already; pass --overwrite to teach '{t.name}' again")
     staging = root / f".teach-{os.getpid()}.partial"
@@ -774,11 +785,19 @@ def teach(
             obj_id = t.obj_id if t.obj_id >= 0 else next_obj_id(root, taken)
             taken.append(obj_id)
             parts.append(teach_part(t, staging / t.name, obj_id, opts, progress))
+        segmenter = staging / LIBRARY_SEGMENTER_DIR
+        if opts.segmenter_budget_s > 0:
+            extend_segmenter(root, [p.folder for p in parts], segmenter, opts, progress)
         for part in parts:  # all parts are complete: move them into the library
             final = root / part.folder.name
             if final.exists():
                 shutil.rmtree(final)
             os.replace(part.folder, final)
+        if segmenter.is_dir():  # the segmenter taught the whole library replaces the one taught before
+            final = root / LIBRARY_SEGMENTER_DIR
+            if final.exists():
+                shutil.rmtree(final)
+            os.replace(segmenter, final)
         shutil.rmtree(staging, ignore_errors=True)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -884,3 +903,49 @@ figcaption{{font-size:90%}} td,th{{padding:2px 8px;text-align:left}}</style></he
 <h2>Grasps tried (lift, transfer, hold; trial 2 displaced 2 mm / 4 deg, trial 3 shaken)</h2>{"".join(grasp_figs)}
 </body></html>
 """
+
+
+# -- 6. the segmenter ---------------------------------------------------------------------------------------------
+#: validation bins per minute of the segmenter budget (at least 1, at most 20)
+VAL_SCENES_PER_MIN = 2.0
+
+
+def extend_segmenter(
+    root: Path, staged: Sequence[Path], out: Path, opts: TeachOptions, progress: ProgressFn | None = None
+) -> Path | None:
+    """Step 6: teach the segmentation model the library's parts (`training.head_tune.tune_segmenter`, within
+    `opts.segmenter_budget_s`): the parts in the `staged` folders and those already in the library `root`, mixed
+    with the built-in parts, on bins of `opts.segmenter_cell`; writes out/normpos_seg.onnx and out/MODEL_CARD.md.
+    None (and nothing written) when the bundled model already knows every label of the library."""
+    from normpos_grasp.cell import resolve_cell
+    from normpos_grasp.perception.onnx_segmenter import BUNDLED_MODEL
+    from normpos_grasp.templates.library import resolve_library
+    from normpos_grasp.training.head_tune import Trunk, tune_segmenter
+
+    note = progress or (lambda _msg: None)
+    templates = [load_template(p) for p in staged]
+    names = {t.name for t in templates}
+    if root.is_dir() and any((p / TEMPLATE_FILE).is_file() for p in root.iterdir() if p.is_dir()):
+        templates += [t for t in load_library(root) if t.name not in names]
+    names = {t.name for t in templates}
+    templates += [t for t in resolve_library(["builtin"]) if t.name not in names]
+    known = set(Trunk(BUNDLED_MODEL).names)
+    if all(t.label in known for t in templates):
+        note("segmenter: the bundled model knows every label of the library; not extended")
+        return None
+    budget = opts.segmenter_budget_s
+    val_scenes = int(min(20, max(1, round(budget / 60.0 * VAL_SCENES_PER_MIN))))
+    report = tune_segmenter(
+        templates, out, resolve_cell(opts.segmenter_cell), scenes=100_000, val_scenes=val_scenes,
+        budget_s=budget, log=lambda msg: note(f"segmenter: {msg}"),
+    )  # fmt: skip
+    new = report.figures.get("tuned new", {})
+    checked = (
+        f"on {report.val_frames} held-back frames recall {new['recall']:.2f}, precision {new['precision']:.2f} of "
+        f"{new['gt']:.0f} new-part instances"
+        if new.get("gt", 0) > 0
+        else f"no new part large enough to count in its {report.val_frames} held-back frames (a larger budget "
+        "validates on more)"
+    )
+    note(f"segmenter: taught {', '.join(report.new_labels)} on {report.frames} frames; {checked}")
+    return report.model_path

@@ -115,6 +115,12 @@ def test_taught_part_first_fit_pays_no_preparation(taught: Path, monkeypatch: py
     assert len(prepared.prepare(t).samples) == prepared.N_SAMPLES
 
 
+def test_a_part_taught_again_in_the_same_process_stores_its_preparation(taught: Path, tmp_path: Path) -> None:
+    """The mesh's preparation is shared in memory by the first teach; the second library still gets its own copy."""
+    (part,) = teach([teach_parts.write_part("t_profile", tmp_path)], tmp_path / "lib2", TINY)
+    assert list((part.folder / ".prepared").glob("*.npz"))
+
+
 @pytest.mark.parametrize("case", ["mm_as_m", "open", "empty", "ten_metres"])
 def test_bad_cad_is_one_line_and_writes_nothing(case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cad = tmp_path / "cad"

@@ -144,6 +144,19 @@ def library_paths(args: argparse.Namespace) -> tuple[str, ...]:
     return tuple(str(p) for p in (getattr(args, "library", None) or ()))
 
 
+def seg_model_from_args(args: argparse.Namespace, fallback: str | Path | None = None) -> Path | None:
+    """The segmentation model a command uses: `--seg-model`, else the one stored with its `--library` folders (or
+    with `fallback` when none is given, as `library_from_args`): LIBRARY/segmenter/normpos_seg.onnx, made by `teach
+    --segmenter-budget-min` (`perception.factory.library_model`); else None (the bundled model)."""
+    from normpos_grasp.perception.factory import library_model
+
+    given = getattr(args, "seg_model", None)
+    if given is not None:
+        return Path(given)
+    paths = library_paths(args) or ((str(fallback),) if fallback is not None else ())
+    return library_model(paths)
+
+
 def library_from_args(args: argparse.Namespace, fallback: str | Path | None = None) -> Any:
     """The command's `TemplateLibrary` (templates.library.resolve_library): the `--library` entries, else
     `fallback` (for example a cell's templates), else the built-in parts."""

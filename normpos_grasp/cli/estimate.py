@@ -35,6 +35,7 @@ from normpos_grasp.cli.args import (
     float_in,
     int_in,
     library_from_args,
+    seg_model_from_args,
 )
 from normpos_grasp.cli.measure import scene_segmenter
 from normpos_grasp.errors import InputError
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     writer = csv.writer(text)
     writer.writerow(["scene_id", "im_id", "obj_id", "score", "R", "t", "time"])
     for scene, ids in work:
-        choice = scene_segmenter(args.segmenter, scene, args.seg_model, None, library.labels, library)
+        choice = scene_segmenter(args.segmenter, scene, seg_model_from_args(args), None, library.labels, library)
         segmenter, args.segmenter_used = choice.segmenter, choice.kind
         for im_id in ids:
             frame = scene.load_frame(im_id)
@@ -106,7 +107,9 @@ def run(args: argparse.Namespace) -> int:
                     continue
                 writer.writerow(_row(scene.scene_id, im_id, fit, frame.camera, dt))
                 n_rows += 1
-        unknown.update(getattr(segmenter, "unknown", {}))
+        seen = getattr(segmenter, "unknown", None)  # the 'gt' segmenter's obj_ids outside the library
+        if isinstance(seen, dict):  # (a class-agnostic model's `unknown` is a method: a taught library)
+            unknown.update(seen)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, text.getvalue())
     print(

@@ -29,6 +29,7 @@ from normpos_grasp.cli.args import (
     int_in,
     library_from_args,
     library_paths,
+    seg_model_from_args,
 )
 from normpos_grasp.errors import InputError, MeasurementError, NormposError
 from normpos_grasp.io.bop import BopScene, is_scene_dir, read_split
@@ -148,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         for im_id in ids:
             if segmenter is None:
                 segmenter = scene_segmenter(
-                    args.segmenter, scene, args.seg_model, args.models_dir, labels, library
+                    args.segmenter, scene, seg_model_from_args(args), args.models_dir, labels, library
                 ).segmenter
             result = measure_frame(scene, im_id, segmenter, options, out_dir, write_ply=not args.no_ply)
             n_frames += 1

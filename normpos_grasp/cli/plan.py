@@ -23,6 +23,7 @@ from normpos_grasp.cli.args import (
     int_in,
     library_from_args,
     library_paths,
+    seg_model_from_args,
 )
 from normpos_grasp.errors import InputError, NormposError, TemplateError
 
@@ -67,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
     library = library_from_args(args, None if library_paths(args) else cell.templates_path)
     bop_dirs = [Path(p) for p in library_paths(args) if (Path(p) / "models_info.json").is_file()]
     models_dir = bop_dirs[0] if bop_dirs else None
-    segmenter = scene_segmenter(args.segmenter, scene, args.seg_model, models_dir, library.labels, library).segmenter
+    seg_model = seg_model_from_args(args, None if library_paths(args) else cell.templates_path)
+    segmenter = scene_segmenter(args.segmenter, scene, seg_model, models_dir, library.labels, library).segmenter
     t1 = time.perf_counter()
     instances = segmenter.segment(frame)
     t2 = time.perf_counter()

@@ -122,6 +122,7 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
     from normpos_grasp.cli.args import library_paths
     from normpos_grasp.errors import InputError
     from normpos_grasp.loop import BopFrameSource, SyntheticBinSource
+    from normpos_grasp.perception.factory import library_model
     from normpos_grasp.pipeline import make_segmenter
     from normpos_grasp.sim.parts import default_part_library
     from normpos_grasp.templates.library import resolve_library
@@ -143,7 +144,7 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
         if kind == "gt":
             segmenter: Any = source.ground_truth_segmenter()
         else:
-            segmenter = make_segmenter(kind)
+            segmenter = make_segmenter(kind, library_model(models))
         return source, library, segmenter, "synthetic"
     if text == "realsense":
         from normpos_grasp.realsense_source import RealSenseSource
@@ -155,8 +156,9 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
             raise InputError("no template library: pass --library or set `templates` in the cell file")
         camera_source = RealSenseSource(cell.world_from_camera)
         try:
-            library = list(resolve_library(models or (str(cell.templates_path),)))
-            return camera_source, library, make_segmenter(kind), "camera"
+            paths = models or (str(cell.templates_path),)
+            library = list(resolve_library(paths))
+            return camera_source, library, make_segmenter(kind, library_model(paths)), "camera"
         except BaseException:
             camera_source.close()
             raise
@@ -177,7 +179,7 @@ def _source(args: argparse.Namespace, cell: Any) -> tuple[Any, Any, Any, str]:
     if not library:
         raise InputError(f"the template library for {path} is empty")
     kind = args.segmenter or "gt"
-    segmenter = bop.ground_truth_segmenter(names) if kind == "gt" else make_segmenter(kind)
+    segmenter = bop.ground_truth_segmenter(names) if kind == "gt" else make_segmenter(kind, library_model(models))
     return bop, library, segmenter, "bop"
 
 

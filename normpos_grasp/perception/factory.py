@@ -17,6 +17,10 @@ overrule it); the verified fit names the part, and a second unknown template tha
 the fit ambiguous (rejected). No retraining for a new part (docs/segmentation.md says why this was chosen over a
 fine-tune). 'auto' still takes the depth segmenter for such a library: on bench_teach's bins its masks of taught
 parts are better.
+
+A library folder may hold the segmenter taught its parts (`teach --segmenter-budget-min`, `train-segmenter --library
+DIR --out DIR/segmenter`): DIR/segmenter/normpos_seg.onnx with its MODEL_CARD.md. `library_model` finds it, and every
+command given `--library DIR` uses it for 'model' and 'auto' unless `--seg-model` names another model.
 """
 
 from __future__ import annotations
@@ -34,6 +38,23 @@ from normpos_grasp.records.template import Template
 logger = logging.getLogger(__name__)
 
 SEGMENTER_KINDS = ("model", "depth", "cad", "gt", "auto")
+#: where a part library keeps the segmenter taught its parts: LIBRARY/segmenter/normpos_seg.onnx (+ MODEL_CARD.md)
+LIBRARY_SEGMENTER_DIR = "segmenter"
+LIBRARY_MODEL_FILE = "normpos_seg.onnx"
+
+
+def library_model(paths: Iterable[str | Path]) -> Path | None:
+    """The segmentation model stored with the part libraries `paths` (LIBRARY/segmenter/normpos_seg.onnx), or None
+    when none holds one ('builtin' and BOP folders hold none). Where several do, the first is used (logged): a
+    model taught one library does not know the parts of the others, which then compete for every mask
+    (`for_library`)."""
+    found = [m for p in paths if str(p) != "builtin" for m in [Path(p) / LIBRARY_SEGMENTER_DIR / LIBRARY_MODEL_FILE]
+             if m.is_file()]  # fmt: skip
+    if len(found) > 1:
+        logger.warning("several libraries hold a segmenter: using %s, not %s", found[0], [str(m) for m in found[1:]])
+    if found:
+        logger.info("using the library's segmenter %s", found[0])
+    return found[0] if found else None
 
 
 @dataclass(frozen=True, eq=False)

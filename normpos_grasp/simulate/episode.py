@@ -288,16 +288,20 @@ class _Setup:
 
 
 _SETUPS: dict[tuple[Any, ...], _Setup] = {}
-_SEGMENTERS: dict[str, Any] = {}
+_SEGMENTERS: dict[tuple[str, tuple[str, ...]], Any] = {}
 
 
-def _segmenter(kind: str) -> Any:
-    """The process's segmenter of `kind` ('model' or 'depth'), created once (the ONNX session is reused)."""
-    hit = _SEGMENTERS.get(kind)
+def _segmenter(kind: str, library: tuple[str, ...] = ()) -> Any:
+    """The process's segmenter of `kind` ('model' or 'depth') for the part libraries `library` (a 'model' is the
+    one stored with them, `perception.factory.library_model`, else the bundled one), created once (the ONNX
+    session is reused)."""
+    hit = _SEGMENTERS.get((kind, library))
     if hit is None:
+        from normpos_grasp.perception.factory import library_model
         from normpos_grasp.pipeline import make_segmenter
 
-        hit = _SEGMENTERS[kind] = make_segmenter(kind)
+        model = library_model(library) if kind == "model" else None
+        hit = _SEGMENTERS[(kind, library)] = make_segmenter(kind, model)
     return hit
 
 
@@ -387,7 +391,7 @@ def _perceive(
     finally:
         renderer.close()
     ideal = list(frame.instances) if config.segmenter == "gt" else None
-    segmenter = None if ideal is not None else _segmenter(config.segmenter)
+    segmenter = None if ideal is not None else _segmenter(config.segmenter, config.library)
     options = PipelineOptions(
         measure=MeasureOptions(skip_failed=True),
         fit_workers=1,  # one scene per core already

@@ -146,6 +146,8 @@ def prepare(template: Template, *, persist: bool = True) -> PreparedTemplate:
             _BY_KEY[key] = arrays
             while len(_BY_KEY) > _MAX_SHARED:
                 _BY_KEY.pop(next(iter(_BY_KEY)))
+    elif persist:
+        _store_own(template, key, arrays)
     prepared = _assemble(arrays, template.symmetry.transforms(continuous_steps=12))
     with _LOCK:
         _CACHE[template] = prepared
@@ -221,6 +223,16 @@ def _load_or_build(template: Template, key: str) -> dict[str, np.ndarray]:
         if _store(folder / name, key, arrays):
             break
     return arrays
+
+
+def _store_own(template: Template, key: str, arrays: dict[str, np.ndarray]) -> None:
+    """A mesh prepared before in this process (shared by key) is also stored in this template's own folder when
+    the file is missing there (the same part taught into a second library in one process)."""
+    dirs = cache_dirs(template)
+    if template.source and dirs and dirs[0].name == CACHE_FOLDER:
+        path = dirs[0] / f"{key[:40]}.npz"
+        if not path.is_file():
+            _store(path, key, arrays)
 
 
 def _load(path: Path, key: str) -> dict[str, np.ndarray] | None:
