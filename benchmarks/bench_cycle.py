@@ -39,14 +39,15 @@ from typing import Any
 import numpy as np
 
 from normpos_grasp.cell import load_cell
+from normpos_grasp.cell.stream import stream_cuts, stream_samples
 from normpos_grasp.errors import SafetyViolation
-from normpos_grasp.execution.driver import DriverOptions, stream_samples
+from normpos_grasp.execution.driver import DriverOptions
 from normpos_grasp.execution.plan import check_plan, parse_plan
 from normpos_grasp.execution.safety import SafetyLimits
 from normpos_grasp.kinematics.ur_params import dh_forward_kinematics, ur_params
 from normpos_grasp.loop import SyntheticBinSource
 from normpos_grasp.pipeline import PipelineOptions, perceive
-from normpos_grasp.planning.plan import PlanOptions, plan_pick
+from normpos_grasp.planning.plan import STREAM_CUTS, PlanOptions, plan_pick
 from normpos_grasp.planning.timing import TimingOptions
 from normpos_grasp.records.plan import PickPlan
 from normpos_grasp.sim.parts import default_part_library
@@ -117,11 +118,7 @@ def streamed_share(plan: PickPlan, limits: SafetyLimits) -> tuple[float, bool]:
     parsed = parse_plan(plan.to_json())
     t, q = parsed.traj_t, parsed.traj_q
     assert t is not None and q is not None
-    cuts = [0]
-    for name in ("grasp", "place"):
-        w = parsed.q[parsed.names.index(name)]
-        cuts.append(cuts[-1] + int(np.argmin(np.abs(q[cuts[-1] :] - w).max(axis=1))))
-    cuts.append(len(t) - 1)
+    cuts = stream_cuts(q, parsed.names, parsed.q, STREAM_CUTS)
     worst, ok = 0.0, True
     for a, b in zip(cuts[:-1], cuts[1:], strict=True):
         sent_t, sent = stream_samples(t[a : b + 1], q[a : b + 1], DriverOptions().stream_period_s)

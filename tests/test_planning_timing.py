@@ -13,7 +13,7 @@ import pytest
 import trimesh
 
 from normpos_grasp.cell import CellConfig, load_cell
-from normpos_grasp.cell.stream import stream_samples
+from normpos_grasp.cell.stream import check_stream, stream_cuts
 from normpos_grasp.errors import SafetyViolation
 from normpos_grasp.execution.driver import DriverOptions
 from normpos_grasp.execution.plan import check_plan, parse_plan
@@ -298,19 +298,13 @@ def test_planned_trajectory_passes_the_execution_checks_and_stops_at_the_gripper
 
 def _streamed(doc: dict, limits: SafetyLimits) -> None:
     """Check the servo commands execution streams for plan.json `doc` as the driver does before sending: pieces
-    split where the gripper acts (home -> grasp -> place -> post_place), each a cubic spline through its samples
-    every `DriverOptions().stream_period_s` (cell.stream.stream_samples, as the driver streams)."""
+    split where the gripper acts (home -> grasp -> place -> post_place, `cell.stream.stream_cuts`), each a cubic
+    spline through its samples every `DriverOptions().stream_period_s` (`cell.stream.check_stream`)."""
     parsed = parse_plan(doc)
     t, q = parsed.traj_t, parsed.traj_q
     assert t is not None and q is not None
-    cuts = [0]
-    for name in ("grasp", "place"):
-        w = parsed.q[parsed.names.index(name)]
-        cuts.append(cuts[-1] + int(np.argmin(np.abs(q[cuts[-1] :] - w).max(axis=1))))
-    cuts.append(len(t) - 1)
-    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-        sent_t, sent = stream_samples(t[a : b + 1], q[a : b + 1], DriverOptions().stream_period_s)
-        limits.check_trajectory(sent_t, sent, "streamed commands")
+    cuts = stream_cuts(q, parsed.names, parsed.q, ("grasp", "place"))
+    check_stream(t, q, cuts, limits, DriverOptions().stream_period_s)
 
 
 def test_the_default_jerk_cap_keeps_the_streamed_commands_within_the_caps() -> None:

@@ -84,6 +84,33 @@ def _clamped_spline_accelerations(t: FloatArray, q: FloatArray) -> FloatArray:
     return m
 
 
+def waypoint_samples(traj_q: FloatArray, waypoint_q: FloatArray) -> tuple[list[int], FloatArray]:
+    """Where a trajectory (M, 6) passes its waypoints (N, 6): each waypoint after the first matched in order to its
+    nearest sample at or after the previous one's (the first at sample 0), and that sample's distance from the
+    waypoint (N,), rad, largest joint difference (0 for the first). Execution splits plan.json's trajectory there
+    (refusing a plan whose samples miss a waypoint) and the planner cuts its stream check there (`stream_cuts`)."""
+    tq = np.asarray(traj_q, dtype=np.float64)
+    wq = np.asarray(waypoint_q, dtype=np.float64)
+    idx = [0]
+    gap = np.zeros(len(wq))
+    for k in range(1, len(wq)):
+        start = idx[-1]
+        d = np.max(np.abs(tq[start:] - wq[k]), axis=1)
+        j = int(np.argmin(d))
+        idx.append(start + j)
+        gap[k] = d[j]
+    return idx, gap
+
+
+def stream_cuts(traj_q: FloatArray, names: Sequence[str], waypoint_q: FloatArray, at: Sequence[str]) -> list[int]:
+    """Sample indices where execution ends one streamed piece and starts the next (`check_stream`'s cuts): 0, the
+    waypoints named in `at` (where the gripper acts and the arm rests) and the last waypoint, each at its sample
+    (`waypoint_samples`)."""
+    idx, _ = waypoint_samples(traj_q, waypoint_q)
+    last = len(names) - 1
+    return [0] + [idx[k] for k in range(1, len(names)) if names[k] in at or k == last]
+
+
 def check_stream(
     times: FloatArray,
     q: FloatArray,

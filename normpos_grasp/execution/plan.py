@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from normpos_grasp.cell.stream import waypoint_samples
 from normpos_grasp.errors import DriverFault, InputError, SafetyViolation
 from normpos_grasp.records.plan import PLAN_FORMAT
 from normpos_grasp.typing import FloatArray
@@ -212,17 +213,13 @@ def check_plan(parsed: ParsedPlan, limits: SafetyLimits) -> SafetyLimits:
 def _split_trajectory(parsed: ParsedPlan) -> list[tuple[FloatArray, FloatArray]]:
     """Trajectory slices between consecutive waypoints (matched in order to their nearest samples)."""
     assert parsed.traj_t is not None and parsed.traj_q is not None
-    idx = [0]
+    idx, gap = waypoint_samples(parsed.traj_q, parsed.q)
     for k in range(1, len(parsed.q)):
-        start = idx[-1]
-        d = np.max(np.abs(parsed.traj_q[start:] - parsed.q[k]), axis=1)
-        j = start + int(np.argmin(d))
-        if d[j - start] > 1e-3:
+        if gap[k] > 1e-3:
             raise SafetyViolation(
                 f"trajectory does not pass through waypoint {parsed.names[k]!r} (closest sample "
-                f"{d[j - start]:.4f} rad away); the plan is inconsistent, nothing was sent"
+                f"{gap[k]:.4f} rad away); the plan is inconsistent, nothing was sent"
             )
-        idx.append(j)
     return [(parsed.traj_t[a : b + 1], parsed.traj_q[a : b + 1]) for a, b in zip(idx[:-1], idx[1:], strict=True)]
 
 

@@ -27,7 +27,8 @@ from normpos_grasp.grasp.quality import QualityOptions, judge
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.records.grasp import GraspCandidate
 from normpos_grasp.records.plan import Evaluation, Target
-from normpos_grasp.typing import FloatArray, IntArray
+from normpos_grasp.records.tool import ToolModel
+from normpos_grasp.typing import BoolArray, FloatArray, IntArray
 
 if TYPE_CHECKING:
     from normpos_grasp.collision.world import CollisionWorld, Hit
@@ -95,6 +96,14 @@ class EvaluationResult:
     @property
     def n_feasible(self) -> int:
         return len(self.ranked)
+
+
+def within_stroke(openings: FloatArray, tool: ToolModel, slack_m: float = 0.0) -> BoolArray:
+    """(N,) whether a parallel tool's jaws take the openings (N,) m: from tool.min_opening_m to tool.stroke_m +
+    slack_m (the evaluation sets openings within `EvaluationOptions.opening_slack_m` above the stroke to the
+    stroke), 1 nm tolerance at both ends."""
+    o = np.asarray(openings, dtype=np.float64)
+    return ~((o > tool.stroke_m + slack_m + 1e-9) | (o < tool.min_opening_m - 1e-9))
 
 
 def five_poses(c: GraspCandidate, entry_z: float, lift_m: float, below_tcp_m: float) -> FloatArray:
@@ -193,8 +202,7 @@ def evaluate_candidates(
     for j in np.flatnonzero(approach[:, 2] > opts.max_approach_up):
         reject(int(j), "approach_angle", "grasp")
     if tool.kind == "parallel":
-        bad = (openings > tool.stroke_m + 1e-9) | (openings < tool.min_opening_m - 1e-9)
-        for j in np.flatnonzero(bad):
+        for j in np.flatnonzero(~within_stroke(openings, tool)):
             if verdict[int(j)] is None:
                 reject(int(j), "stroke", "grasp")
     for i, c in enumerate(candidates):

@@ -25,7 +25,7 @@ import numpy as np
 
 from normpos_grasp.cell.config import CellConfig, PlaceSpec
 from normpos_grasp.cell.limits import SafetyLimits
-from normpos_grasp.cell.stream import check_stream
+from normpos_grasp.cell.stream import check_stream, stream_cuts
 from normpos_grasp.collision.world import CollisionWorld
 from normpos_grasp.errors import PlanningError, SafetyViolation
 from normpos_grasp.geometry.transforms import invert_pose
@@ -39,7 +39,7 @@ from normpos_grasp.grasp.lean import LeanOptions, wall_leans
 from normpos_grasp.grasp.quality import judge
 from normpos_grasp.kinematics.arm import ArmModel
 from normpos_grasp.planning.branches import half_turn_symmetric, place_poses, quickest_grasp, ranked_place_configs
-from normpos_grasp.planning.evaluate import EvaluationOptions, evaluate_candidates
+from normpos_grasp.planning.evaluate import EvaluationOptions, evaluate_candidates, within_stroke
 from normpos_grasp.planning.rrt import MotionOptions, plan_joint_motion
 from normpos_grasp.planning.timing import PathPiece, TimingOptions, joint_caps, time_parameterise, time_path
 from normpos_grasp.records.grasp import GraspCandidate
@@ -365,10 +365,8 @@ def _variant(
         return _turned(found, cell)
     if variant == "leaned":
         # of the grasps the jaws can open to (the evaluation's stroke test): the others need no leaning
-        wide = cell.tool.stroke_m + opts.evaluation.opening_slack_m + 1e-9
-        narrow = cell.tool.min_opening_m - 1e-9
-        fits = [c for c in found if narrow <= c.opening_m <= wide]
-        return _leaned(fits, k, template, target, world, opts)
+        fits = within_stroke(np.array([c.opening_m for c in found]), cell.tool, opts.evaluation.opening_slack_m)
+        return _leaned([c for c, ok in zip(found, fits, strict=True) if ok], k, template, target, world, opts)
     return found
 
 
@@ -684,18 +682,6 @@ STREAM_CUTS = ("grasp", "place")
 acts): `execution.plan.ExecuteOptions`' close_at and open_at."""
 
 
-def _stream_cuts(q: FloatArray, waypoints: Sequence[Waypoint]) -> list[int]:
-    """Sample indices (first 0, last the final waypoint's) where execution cuts the trajectory `q` (M, 6) into the
-    pieces it streams: each waypoint after the first matched in order to its nearest sample (as
-    `execution.plan._split_trajectory` does), kept where it is in STREAM_CUTS or the last."""
-    idx = [0]
-    for w in waypoints[1:]:
-        start = idx[-1]
-        idx.append(start + int(np.argmin(np.max(np.abs(q[start:] - w.q), axis=1))))
-    last = len(waypoints) - 1
-    return [0] + [idx[k] for k in range(1, len(waypoints)) if waypoints[k].name in STREAM_CUTS or k == last]
-
-
 def _timed_for_stream(
     pieces: list[PathPiece],
     waypoints: Sequence[Waypoint],
@@ -733,7 +719,7 @@ def _timed_for_stream(
             raise _PathRejected(f"the cell refuses the plan: {exc}", _cell_reason("path", exc)) from exc
         t0 = time.perf_counter()
         try:
-            check_stream(t, q, _stream_cuts(q, waypoints), limits, opts.stream_period_s)
+            check_stream(t, q, stream_cuts(q, names, wq, STREAM_CUTS), limits, opts.stream_period_s)
             return trajectory
         except SafetyViolation as exc:
             halved = 0.5 * opts.jerk_rad_s3

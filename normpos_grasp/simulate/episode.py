@@ -39,7 +39,7 @@ from normpos_grasp.measure.measure import MeasureOptions
 from normpos_grasp.perception.change import mask_iou
 from normpos_grasp.pipeline import FrameResult, PipelineOptions, ReuseOptions, perceive
 from normpos_grasp.planning.evaluate import EvaluationOptions
-from normpos_grasp.planning.plan import predicted_success, rejections_by_target, stop_line
+from normpos_grasp.planning.plan import PLANNING_PASSES, predicted_success, rejections_by_target, stop_line
 from normpos_grasp.planning.push import Push, PushHand
 from normpos_grasp.records.template import Template
 from normpos_grasp.sim.physics import GripperSpec, PhysicsOptions, PhysicsResult, validate_grasp
@@ -52,7 +52,7 @@ logger = logging.getLogger(__name__)
 CAUSES = ("segmentation_miss", "wrong_fit", "no_feasible_grasp", "physics_drop", "collision")
 #: what produced a pick's grasp (`PickRecord.kind`, `grasp_kind`): the planner's passes (`PLANNING_PASSES`:
 #: 'first', 'turned', 'leaned'), simulate's relaxed-margin pass, or a manipulation made before it ('drag', 'push')
-KINDS = ("first", "turned", "leaned", "relaxed", "drag", "push")
+KINDS = (*PLANNING_PASSES, "relaxed", "drag", "push")
 SEGMENTERS = ("model", "gt", "depth")
 
 
