@@ -56,6 +56,22 @@ def test_centred_antipodal_grasp_holds() -> None:
     assert res.max_penetration_m < 2e-3
 
 
+def test_part_gripped_across_a_vertical_closing_axis_does_not_drift_with_the_jaws() -> None:
+    # Issue 17: a 30 mm thick plate gripped on its top and bottom faces (approach horizontal, closing axis
+    # vertical), standing on a narrow post that the fingers straddle. With the two jaws as independent
+    # force-saturated servos, the plate and both fingers sank together under gravity (nothing held the pair)
+    # until the upper finger neared its stop: 14.8 mm of 'slip' with no motion in the pads. The 2F-85's jaws are
+    # coupled, so the plate stays where it was gripped.
+    plate = _box((0.04, 0.12, 0.03), mass=0.15, name="plate")
+    post = [("post", make_pose(translation=[0.0, 0.0, 0.05]), np.array([0.02, 0.01, 0.1]))]
+    pose = make_pose(translation=[0.0, 0.0, 0.115])
+    tcp = _tcp(pose[:3, 3] + [-0.008, 0.035, 0.0], approach=(1.0, 0.0, 0.0), closing=(0.0, 0.0, 1.0))
+    res = validate_grasp(plate, pose, [], post, GripperSpec.preset("2f85"), tcp, 0.05)
+    assert res.outcome == "held", res.reason
+    assert res.slip_m < 1e-3
+    assert res.grip_force_n == pytest.approx(2 * 100.0, rel=0.1)  # the coupling leaves the squeeze as it was
+
+
 def test_fingers_on_sphere_pole_fail() -> None:
     sphere = _sphere()
     pose = make_pose(translation=[0.0, 0.0, 0.0225])

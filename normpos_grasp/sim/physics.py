@@ -2,8 +2,8 @@
 
 `validate_grasp` builds a MuJoCo scene holding the target (its convex decomposition, or exact primitives for
 boxes and spheres), its neighbours (free bodies in their true poses), the static cell geometry (boxes) and the
-gripper as a mocap-driven hand: a parallel-jaw gripper whose two fingers close at a set speed and squeeze with a
-force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or a suction cup on a
+gripper as a mocap-driven hand: a parallel-jaw gripper whose two coupled fingers close at a set speed and squeeze
+with a force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or a suction cup on a
 compliant bellows whose vacuum holds the part with pressure x area once a seal check on the true surface passed
 (MuJoCo adhesion actuator). It then replays the pick and reports:
 
@@ -442,8 +442,13 @@ def _body_geoms(shapes: tuple[tuple[str, tuple[float, ...], FloatArray], ...]) -
     return "".join(out)
 
 
-def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -> tuple[str, str, str]:
-    """(hand body xml, actuator xml, contact-exclude xml) of the mocap-driven hand; the body frame is the TCP."""
+def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -> tuple[str, str, str, str]:
+    """(hand body xml, actuator xml, contact-exclude xml, equality xml) of the mocap-driven hand; the body frame is
+    the TCP. The two jaws of a parallel gripper are coupled (equal travel, as the 2F-85's single drive and
+    linkage move them): each drive still saturates at `grip_force_n`, but the jaws cannot drift together along
+    the closing axis, which two independent force-saturated servos let a gripped part do (both saturated, nothing
+    holds the pair in place: a part gripped across an inclined closing axis slid downhill with both fingers until
+    the upper finger came within the servo band of its stop, half the part's width, 10-13 mm)."""
     pos, quat = _fmt(world_from_tcp[:3, 3]), _fmt(_quat_wxyz(world_from_tcp[:3, :3]))
     grip_friction = f'friction="{spec.finger_friction:.6g} {spec.torsional_friction_m:.6g} 0.0001"'
     if spec.kind == "parallel":
@@ -479,7 +484,8 @@ def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -
             for side in ("left", "right")
         )
         exclude = '<exclude body1="hand_left" body2="hand_right"/>'
-        return body, actuators, exclude
+        coupling = '<joint joint1="jaw_left" joint2="jaw_right" polycoef="0 1 0 0 0" solref="0.005 1"/>'
+        return body, actuators, exclude, coupling
     cup_h = 0.006
     r = spec.cup_diameter_m / 2.0
     travel = spec.bellows_travel_m
@@ -495,7 +501,7 @@ def _hand_xml(spec: GripperSpec, world_from_tcp: FloatArray, opening_m: float) -
         f'<geom name="hand_cup_lip" type="cylinder" size="{r:.12g} {cup_h / 2:.12g}" pos="0 0 {-cup_h / 2:.12g}" '
         f'mass="0.05" condim="4" {cup_friction}/></body></body>'
     )
-    return body, "", ""
+    return body, "", "", ""
 
 
 # -- validation ---------------------------------------------------------------------------------------
@@ -599,14 +605,14 @@ def validate_grasp(
     statics = _static_geoms(static_boxes, opts.static_friction, lowest)
     pre = w_tcp @ make_pose(translation=[0.0, 0.0, -opts.approach_m])
     opening = min(opening_m, spec.stroke_m) if spec.kind == "parallel" else 0.0
-    hand, actuators, exclude = _hand_xml(spec, pre, opening)
+    hand, actuators, exclude, coupling = _hand_xml(spec, pre, opening)
     vacuum_eq = (
         '<weld name="vacuum" body1="hand_cup" body2="target" active="false" solref="0.004 1"/>'
         if spec.kind == "suction"
         else ""
     )
     xml = _hand_scene_xml(
-        "grasp_check", opts.timestep_s, assets, statics + bodies, hand, pre, exclude, actuators, vacuum_eq
+        "grasp_check", opts.timestep_s, assets, statics + bodies, hand, pre, exclude, actuators, coupling + vacuum_eq
     )
     try:
         model = mujoco.MjModel.from_xml_string(xml)

@@ -97,8 +97,8 @@ def simulate_push(
     pre = w_tcp.copy()
     pre[2, 3] += opts.descend_m
     closed = 1e-3  # jaws (nearly) closed: the fingers form one pusher
-    hand, actuators, exclude = _hand_xml(gripper, pre, closed)
-    xml = _hand_scene_xml("push", phys.timestep_s, assets, statics + bodies, hand, pre, exclude, actuators)
+    hand, actuators, exclude, coupling = _hand_xml(gripper, pre, closed)
+    xml = _hand_scene_xml("push", phys.timestep_s, assets, statics + bodies, hand, pre, exclude, actuators, coupling)
     try:
         model = mujoco.MjModel.from_xml_string(xml)
     except ValueError as exc:
