@@ -91,11 +91,10 @@ def test_a_slab_nobody_segmented_turns_the_jaws_away(cell: CellConfig) -> None:
     free = plan_pick([fit], [], cell, options)
     across_y = [e for e in free.evaluations if e.feasible and abs(e.candidate.world_from_tcp[1, 0]) > 0.9]
     assert across_y, "without the slab some top-down grasp closes along y"
-    # a plate under both sides of the cube along y from 1 cm off its faces, where those jaws reach down: only
-    # the mask missed it
-    slab = np.concatenate(
-        [_slab(0.47, 0.53, 0.03, 0.05, FLOOR_Z + 0.01), _slab(0.47, 0.53, -0.05, -0.03, FLOOR_Z + 0.01)]
-    )
+    # a plate under both sides of the cube along y, 1 cm off its faces, where those jaws reach down: only the mask
+    # missed it (clutter is whole 1 cm grid cells: nearer than that, it would touch the cube and block every lift)
+    y0 = 0.03
+    slab = np.concatenate([_slab(0.47, 0.53, y0, 0.05, FLOOR_Z + 0.01), _slab(0.47, 0.53, -0.05, -y0, FLOOR_Z + 0.01)])
     plan = plan_pick([fit], [], cell, options, uncovered=slab)
     assert plan.status == "ok"
     for e in plan.evaluations:
@@ -108,3 +107,4 @@ def test_bad_options_are_refused() -> None:
         UncoveredOptions(smooth_px=4)
     with pytest.raises(InputError):
         UncoveredOptions(floor_band_m=-0.001)
+

@@ -74,35 +74,34 @@ def uncovered_points(
     full = np.asarray(frame.depth_m, dtype=np.float64)
     valid = valid_depth_mask(full)[::s, ::s]
     depth = np.where(valid, full[::s, ::s], 0.0)
-    covered: UInt8Array = np.zeros(full.shape, dtype=np.uint8)
+    covered: UInt8Array = np.zeros(valid.shape, dtype=np.uint8)
     for mask in masks:
-        covered |= np.asarray(mask, dtype=bool).view(np.uint8)
-    if opts.dilate_px and len(masks):
-        size = 2 * opts.dilate_px + 1
+        covered |= np.asarray(mask, dtype=bool)[::s, ::s].view(np.uint8)
+    grow = -(-opts.dilate_px // s)  # the growth in strided pixels, rounded up
+    if grow and len(masks):
+        size = 2 * grow + 1
         covered = np.asarray(cv2.dilate(covered, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))), np.uint8)
-    free = valid & (covered[::s, ::s] == 0)
+    free = valid & (covered == 0)
     rays = pixel_rays(camera)[::s, ::s]
-    cam = np.stack([rays[:, :, 0] * depth, rays[:, :, 1] * depth, depth], axis=-1)
+    rx, ry = rays[:, :, 0], rays[:, :, 1]
     pose = np.asarray(camera.world_from_camera, dtype=np.float64)
-    world = cam @ pose[:3, :3].T + pose[:3, 3]
     weight = free.astype(np.float32)  # heights averaged over uncovered pixels only: a part does not lift its border
     k = (opts.smooth_px, opts.smooth_px)
     count = cv2.boxFilter(weight, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
     inside = np.zeros(valid.shape, dtype=bool)
     for b in bins:
-        inv = invert_pose(b.world_from_bin)
-        local = world @ inv[:3, :3].T + inv[:3, 3]
+        m = invert_pose(b.world_from_bin) @ pose  # bin_from_camera: a pixel's bin coordinates are d (m0 u + m1 v + m2)
+        x, y, z = (depth * (m[i, 0] * rx + m[i, 1] * ry + m[i, 2]) + m[i, 3] for i in range(3))
         lx, ly, h = (float(v) for v in b.inner_size)
-        z = local[:, :, 2]
-        interior = (
-            valid
-            & (np.abs(local[:, :, 0]) <= 0.5 * lx - opts.wall_band_m)
-            & (np.abs(local[:, :, 1]) <= 0.5 * ly - opts.wall_band_m)
-        )
+        interior = valid & (np.abs(x) <= 0.5 * lx - opts.wall_band_m) & (np.abs(y) <= 0.5 * ly - opts.wall_band_m)
         near_floor = interior & (np.abs(z) <= opts.floor_search_m)
         level = float(np.median(z[near_floor])) if near_floor.sum() >= 50 else 0.0
         level = float(np.clip(level, -opts.floor_search_m / 3.0, opts.floor_search_m / 3.0))
         summed = cv2.boxFilter((z * weight).astype(np.float32), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
         mean_z = summed / np.maximum(count, 1.0)
         inside |= interior & (mean_z >= level + opts.floor_band_m) & (z <= h + opts.above_rim_m)
-    return np.asarray(world[inside & free], dtype=np.float64)
+    keep = inside & free
+    d = depth[keep]
+    cam = np.column_stack([rx[keep] * d, ry[keep] * d, d])
+    world = cam @ pose[:3, :3].T + pose[:3, 3]
+    return np.asarray(world, dtype=np.float64)
