@@ -27,14 +27,16 @@ from normpos_grasp.typing import BoolArray, FloatArray, UInt8Array
 
 @dataclass(frozen=True)
 class UncoveredOptions:
-    """floor_band_m: a point is above a bin's floor when its height, averaged over the valid pixels of its
-    smooth_px-pixel neighbourhood (every stride_px-th pixel: D435 noise of 1.8 mm at 0.9 m averages to 0.6 mm over
-    3 x 3), is this much over the floor's level, m; the level is the median height of the floor pixels (within
-    floor_search_m of the bin's floor), kept within floor_search_m / 3 of it (a bin covered by flat parts). wall_band_m:
-    points this close to the inner walls are the walls, m. above_rim_m: highest point kept over the rim, m.
-    dilate_px: each mask is grown by this many pixels first (its border pixels mix the part's depth with what lies
-    behind it: 3 px is 4.5 mm at 0.9 m). stride_px: every stride_px-th pixel in both directions (clutter voxels are
-    1 cm; 2 px is 3 mm at 0.9 m). smooth_px: side of the averaging window, in strided pixels (odd)."""
+    """floor_band_m: a point is above a bin's floor when its height, averaged over the uncovered valid pixels of its
+    smooth_px-pixel neighbourhood (every stride_px-th pixel), is this much over the floor's level, m. With the D435
+    model's noise (2.4 mm RMS at 0.9 m, partly correlated) 6 mm over 5 x 5 leaves no point of 6 empty bins, 5 mm up
+    to 6 points, 4 mm over 3 x 3 about 160 (`benchmarks/bench_uncovered.py`). The level is the median height of the
+    floor pixels (within floor_search_m of the bin's floor), kept within floor_search_m / 3 of it (a bin covered by
+    flat parts). wall_band_m: points this close to the inner walls are the walls, m. above_rim_m: highest point kept
+    over the rim, m. dilate_px: each mask is grown by this many pixels first (its border pixels mix the part's depth
+    with what lies behind it: 3 px is 4.5 mm at 0.9 m). stride_px: every stride_px-th pixel in both directions
+    (clutter voxels are 1 cm; 2 px is 3 mm at 0.9 m). smooth_px: side of the averaging window, strided pixels (odd).
+    """
 
     floor_band_m: float = 0.006
     floor_search_m: float = 0.015
