@@ -15,6 +15,7 @@ from normpos_grasp.cell.config import CellConfig
 from normpos_grasp.errors import InputError
 from normpos_grasp.measure.depth_bias import DepthBiasEstimate, DepthBiasOptions, check_frame_depth
 from normpos_grasp.measure.measure import MeasureOptions, measure_instances
+from normpos_grasp.measure.uncovered import UncoveredOptions, uncovered_points
 from normpos_grasp.perception.base import Segmenter
 from normpos_grasp.perception.cad_detector import CadDetector, RegionOfInterest
 from normpos_grasp.perception.change import unchanged
@@ -56,6 +57,9 @@ class PipelineOptions:
     reuse: how `perceive(..., previous=...)` decides an object did not move.
     depth_bias: `process_frame` estimates the frame's depth bias from the cell's support plane with these settings
         and removes it (`measure.depth_bias.check_frame_depth`); None turns the check off.
+    uncovered: `process_frame` hands the planner the measured surfaces in the cell's bins that no instance covers
+        (`measure.uncovered.uncovered_points`: what the segmenter missed becomes an obstacle); None: only what was
+        segmented is in the collision world.
     """
 
     measure: MeasureOptions = field(default_factory=MeasureOptions)
@@ -64,6 +68,7 @@ class PipelineOptions:
     fit_workers: int = 2
     reuse: ReuseOptions = field(default_factory=ReuseOptions)
     depth_bias: DepthBiasOptions | None = field(default_factory=DepthBiasOptions)
+    uncovered: UncoveredOptions | None = field(default_factory=UncoveredOptions)
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,7 +223,10 @@ def process_frame(
         frame, check = check_frame_depth(frame, cell, opts.depth_bias)
     result = perceive(frame, segmenter, library, opts, instances, cell=cell)
     t0 = time.perf_counter()
-    plan = plan_pick(result.fits, result.normpositions, cell, opts.plan, start_q)
+    uncovered = None
+    if opts.uncovered is not None:
+        uncovered = uncovered_points(frame, [i.mask for i in result.instances], cell.bins, opts.uncovered)
+    plan = plan_pick(result.fits, result.normpositions, cell, opts.plan, start_q, uncovered)
     timings = dict(result.timings_ms, plan=_ms(t0))
     return FrameResult(frame, result.instances, result.normpositions, result.fits, plan, timings, depth_check=check)
 

@@ -93,8 +93,10 @@ def test_a_simulated_pick_records_the_grasp_its_plan_chose(tmp_path: Path, monke
     plans: list[tuple[Any, Any]] = []
     real = plan_module.plan_pick
 
-    def spy(fits: Any, normpositions: Any, cell: Any, options: Any = None, start_q: Any = None) -> Any:
-        plan = real(fits, normpositions, cell, options, start_q)
+    def spy(
+        fits: Any, normpositions: Any, cell: Any, options: Any = None, start_q: Any = None, uncovered: Any = None
+    ) -> Any:
+        plan = real(fits, normpositions, cell, options, start_q, uncovered)
         plans.append((plan, options))
         return plan
 

@@ -104,12 +104,15 @@ def build_world(
     normpositions: Sequence[NormPosition],
     arm: ArmModel,
     options: PlanOptions | None = None,
+    uncovered: FloatArray | None = None,
 ) -> tuple[CollisionWorld, list[Target], list[Any]]:
     """The collision world of a frame and the pickable targets.
 
     Accepted fits become BVH meshes ('object/<k>'); measured points that no accepted fit explains become voxel
     boxes ('clutter'); with `pick_unmatched`, norm-positions without a fit become primitive targets instead.
-    Returns (world, targets, templates per target)."""
+    uncovered: (N, 3) world points of surfaces no instance covers (`measure.uncovered.uncovered_points`: what the
+    segmenter missed); those no target's box (grown by `neighbour_tolerance_m`) explains become clutter too
+    ('clutter/uncovered'). Returns (world, targets, templates per target)."""
     opts = options or PlanOptions()
     world = CollisionWorld()
     for box in cell.static_boxes:
@@ -179,6 +182,13 @@ def build_world(
         pts = _drop_outliers(pts, cell.voxel_m, opts.clutter_min_points)
         if len(pts):
             world.add_points(f"clutter/{np_.instance_id}", pts, cell.voxel_m, "clutter")
+    if uncovered is not None and len(uncovered):
+        pts = np.asarray(uncovered, dtype=np.float64).reshape(-1, 3)
+        if targets:
+            pts = _unexplained(pts, targets, opts.neighbour_tolerance_m)
+        pts = _drop_outliers(pts, cell.voxel_m, opts.clutter_min_points)
+        if len(pts):
+            world.add_points("clutter/uncovered", pts, cell.voxel_m, "clutter")
     return world, targets, templates
 
 
@@ -226,8 +236,11 @@ def plan_pick(
     cell: CellConfig,
     options: PlanOptions | None = None,
     start_q: FloatArray | None = None,
+    uncovered: FloatArray | None = None,
 ) -> PickPlan:
     """Choose an object and a grasp and plan the pick-and-place motion from `start_q` (default the cell's home).
+    uncovered: measured points no instance covers (`measure.uncovered.uncovered_points`), obstacles where no
+    target explains them (`build_world`).
 
     A cell with several bins (`cell.bins`): every bin's walls are in the collision world and every perceived part an
     obstacle; the parts are sorted into bins by their centre (`CellConfig.bin_of`; parts in no bin are not picked)
@@ -243,7 +256,7 @@ def plan_pick(
     t_start = time.perf_counter()
     timing: dict[str, float] = {}
     arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
-    world, targets, templates = build_world(cell, fits, normpositions, arm, opts)
+    world, targets, templates = build_world(cell, fits, normpositions, arm, opts, uncovered)
     world.set_arm(arm)
     timing["world"] = (time.perf_counter() - t_start) * 1e3
     home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)

@@ -405,6 +405,7 @@ def _perceive(
 
 def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
     """Simulate clearing scene `scene_index` of the batch described by `config` (see module docstring)."""
+    from normpos_grasp.measure.uncovered import uncovered_points
     from normpos_grasp.planning.capture import plan_capture_move
     from normpos_grasp.planning.plan import PlanOptions, plan_pick
     from normpos_grasp.sim.scene import SceneOptions, compose_scene
@@ -474,11 +475,12 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             captures += 1
             fitted += len(seen.fits) - seen.result.reused_fits
             reused += seen.result.reused_fits
-            plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options, start_q)
+            uncovered = uncovered_points(seen.frame.frame, [i.mask for i in seen.instances], cell.bins)
+            plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options, start_q, uncovered)
             relaxed_used = False
             if plan.status != "ok" and config.relaxed_plan:
                 relaxed = replace(plan_options, evaluation=config.relaxed_evaluation)
-                second = plan_pick(seen.fits, seen.normpositions, cell, relaxed, start_q)
+                second = plan_pick(seen.fits, seen.normpositions, cell, relaxed, start_q, uncovered)
                 if second.status == "ok":
                     plan, relaxed_used = second, True
             if plan.status == "ok" and plan.chosen is not None:
