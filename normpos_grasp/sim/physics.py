@@ -1,11 +1,11 @@
 """Physics validation of one grasp in MuJoCo: approach, close (or seal), lift, move sideways, hold, judge.
 
 `validate_grasp` builds a MuJoCo scene holding the target (its convex decomposition, or exact primitives for
-boxes and spheres), its neighbours (free bodies in their true poses), the static cell geometry (boxes) and the
-gripper as a mocap-driven hand: a parallel-jaw gripper whose two fingers close at a set speed and squeeze with a
-force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or a suction cup on a
-compliant bellows whose vacuum holds the part with pressure x area once a seal check on the true surface passed
-(MuJoCo adhesion actuator). It then replays the pick and reports:
+boxes and spheres), its neighbours (free bodies in their true poses, far ones fixed), the static cell geometry
+(boxes) and the gripper as a mocap-driven hand: a parallel-jaw gripper whose two fingers close at a set speed and
+squeeze with a force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or a
+suction cup on a compliant bellows whose vacuum holds the part with pressure x area once a seal check on the true
+surface passed (MuJoCo adhesion actuator). It then replays the pick and reports:
 
 - 'collision': the hand hit the cell or a neighbour (or landed on the target before closing) harder than
   `collision_force_n` or deeper than `collision_penetration_m`: a real arm would stop;
@@ -210,7 +210,8 @@ class PhysicsOptions:
     stop of the arm; lighter pushes just move the part). release_s: after a failed pick the jaws open (the vacuum
     stops) and the hand rises 5 cm for this long, so the final poses show where the parts came to rest.
     neighbour_radius_m: neighbours whose bounding sphere comes
-    closer than this to the target's centre are simulated; the rest are left out.
+    closer than this to the target's centre are simulated; the rest stay fixed where they are (a simulated part
+    leaning on one keeps its support instead of falling through it).
     object_friction / static_friction: Coulomb friction of parts and cell geometry.
     check_every: contact checks every this many steps. seal: suction seal criteria.
     decomposition: convex decomposition settings for non-convex parts.
@@ -255,7 +256,7 @@ class PhysicsResult:
     closing. collision_with: names of what the hand hit ('' if nothing). seal: the suction seal check (None for
     parallel jaws). sim_time_s: simulated time; wall_time_s: compute time. n_pieces: convex pieces of the target.
     world_from_object_final (4, 4) / world_from_neighbours_final (K, 4, 4): poses at the end of the run (the
-    target where it ended, in the hand or not; neighbours left out of the simulation keep their poses).
+    target where it ended, in the hand or not; neighbours held fixed keep their poses).
     """
 
     outcome: str
@@ -394,7 +395,10 @@ def _object_body_xml(
     pieces: list[tuple[str, FloatArray]],
     friction: float,
     assets: list[str],
+    fixed: bool = False,
 ) -> str:
+    """MJCF body of a part at `world_from_object`: a free body, or with `fixed` one welded where it is (it carries
+    what rests on it and does not move)."""
     mesh = template.mesh
     volume = max(float(mesh.volume), 1e-12)
     inertia = np.asarray(mesh.moment_inertia, dtype=np.float64) * (template.mass_kg / volume)
@@ -414,9 +418,10 @@ def _object_body_xml(
             assets.append(f'<mesh name="{name}_m{j}" vertex="{_fmt(data)}" inertia="convex"/>')
             geoms.append(f'<geom type="mesh" mesh="{name}_m{j}" {common}/>')
     pose = world_from_object
+    joint = "" if fixed else f'<freejoint name="{name}_free"/>'
     return (
         f'<body name="{name}" pos="{_fmt(pose[:3, 3])}" quat="{_fmt(_quat_wxyz(pose[:3, :3]))}">'
-        f'<freejoint name="{name}_free"/>'
+        f"{joint}"
         f'<inertial pos="{_fmt(com)}" mass="{template.mass_kg:.12g}" fullinertia="{full}"/>'
         f"{''.join(geoms)}</body>"
     )
@@ -589,13 +594,14 @@ def validate_grasp(
         neighbour_poses.append(pose)
         sphere = tmpl.mesh.bounding_sphere.primitive
         c = pose[:3, :3] @ np.asarray(sphere.center) + pose[:3, 3]
-        if np.linalg.norm(c - centre) - float(sphere.radius) > opts.neighbour_radius_m:
-            continue
-        kept += 1
-        simulated.append(i)
+        far = bool(np.linalg.norm(c - centre) - float(sphere.radius) > opts.neighbour_radius_m)
+        if not far:
+            kept += 1
+            simulated.append(i)
         lowest = min(lowest, float((np.asarray(tmpl.mesh.vertices) @ pose[:3, :3].T + pose[:3, 3])[:, 2].min()))
         pieces = collision_pieces(tmpl, opts.decomposition)
-        bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets))
+        # a far neighbour stays in the scene, fixed where it is: a simulated part leaning on it keeps its support
+        bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets, fixed=far))
     statics = _static_geoms(static_boxes, opts.static_friction, lowest)
     pre = w_tcp @ make_pose(translation=[0.0, 0.0, -opts.approach_m])
     opening = min(opening_m, spec.stroke_m) if spec.kind == "parallel" else 0.0
