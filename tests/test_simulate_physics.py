@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
@@ -219,3 +221,19 @@ def test_a_far_neighbour_still_carries_a_simulated_part_resting_on_it() -> None:
     assert res.outcome == "held", res.reason
     np.testing.assert_allclose(res.world_from_neighbours_final[0], block_pose)  # fixed: not simulated
     assert res.world_from_neighbours_final[1][2, 3] == pytest.approx(0.025, abs=1e-3)  # still on the block
+
+
+def test_final_poses_are_where_the_parts_came_to_rest() -> None:
+    """A failed pick that lifted its part: the jaws open at lift height and the part falls. The run goes on until
+    it lies still, so the next pick starts from a part at rest, not one frozen in mid-fall (seed 0 scene 74: a bar
+    knocked on pick 3 was still tipping over, 0.3 m/s, when that run ended; pick 4 planned a leaned grasp on it,
+    and it fell flat before the jaws closed: 'missed')."""
+    cube = _box((0.04, 0.04, 0.04))
+    pose = make_pose(translation=[0.0, 0.0, 0.02])
+    opts = PhysicsOptions(slip_tolerance_m=1e-9, release_s=0.05)  # any motion is a slip; a short release
+    res = validate_grasp(cube, pose, [], TABLE, GripperSpec.preset("2f85"), _tcp(pose[:3, 3]), 0.06, opts)
+    assert res.outcome == "slip"
+    assert res.world_from_object_final[2, 3] == pytest.approx(0.02, abs=2e-3)  # back on the table
+    unrested = replace(opts, rest_s=0.0)
+    res = validate_grasp(cube, pose, [], TABLE, GripperSpec.preset("2f85"), _tcp(pose[:3, 3]), 0.06, unrested)
+    assert res.world_from_object_final[2, 3] > 0.05  # without it, frozen in mid-fall

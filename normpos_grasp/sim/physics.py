@@ -208,10 +208,12 @@ class PhysicsOptions:
     collision_force_n / collision_penetration_m: a hand contact with the cell or a neighbour above either is a
     collision; target_collision_force_n: the same for the hand pressing on the target before closing (a protective
     stop of the arm; lighter pushes just move the part). release_s: after a failed pick the jaws open (the vacuum
-    stops) and the hand rises 5 cm for this long, so the final poses show where the parts came to rest.
-    neighbour_radius_m: neighbours whose bounding sphere comes
-    closer than this to the target's centre are simulated; the rest stay fixed where they are (a simulated part
-    leaning on one keeps its support instead of falling through it).
+    stops) and the hand rises 5 cm for this long. rest_s / rest_speed_m_s / rest_spin_rad_s: then (after the hold
+    of a held pick too) the run goes on, the hand where it is, until no free part moves faster than
+    rest_speed_m_s and turns faster than rest_spin_rad_s, for at most rest_s: the final poses are where the parts
+    came to rest (a part still falling would start the next pick in mid-air). neighbour_radius_m: neighbours
+    whose bounding sphere comes closer than this to the target's centre are simulated; the rest stay fixed where
+    they are (a simulated part leaning on one keeps its support instead of falling through it).
     object_friction / static_friction: Coulomb friction of parts and cell geometry.
     check_every: contact checks every this many steps. seal: suction seal criteria.
     decomposition: convex decomposition settings for non-convex parts.
@@ -234,6 +236,9 @@ class PhysicsOptions:
     collision_force_n: float = 40.0
     target_collision_force_n: float = 150.0
     release_s: float = 0.5
+    rest_s: float = 1.5
+    rest_speed_m_s: float = 0.005
+    rest_spin_rad_s: float = 0.1
     collision_penetration_m: float = 0.004
     neighbour_radius_m: float = 0.25
     object_friction: float = 0.5
@@ -758,6 +763,7 @@ def validate_grasp(
         outcome, reason = "held", ""
     if outcome != "held" and opts.release_s > 0:
         step += _release(model, data, spec, mocap, np.asarray(data.mocap_pos[mocap], dtype=np.float64), opts)
+    step += _come_to_rest(model, data, opts)
     sim_time = step * dt
     final_neighbours = np.array(neighbour_poses, dtype=np.float64).reshape(-1, 4, 4)
     for i in simulated:
@@ -806,6 +812,36 @@ def _release(
     if not np.all(np.isfinite(data.qpos)):
         raise SimulationError("the grasp simulation diverged while releasing; reduce timestep_s")
     return n_steps
+
+
+def _come_to_rest(model: mujoco.MjModel, data: mujoco.MjData, opts: PhysicsOptions) -> int:
+    """Step on (the hand's controls as they are) until no free part moves faster than `opts.rest_speed_m_s` or
+    turns faster than `opts.rest_spin_rad_s`, checked every 10 steps, for at most `opts.rest_s`; returns steps."""
+    import mujoco
+
+    dofs = [
+        int(model.jnt_dofadr[j])
+        for j in range(model.njnt)
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE and not model.joint(j).name.startswith("hand")
+    ]
+    if not dofs or opts.rest_s <= 0:
+        return 0
+    lin = np.array([[d, d + 1, d + 2] for d in dofs])
+    ang = lin + 3
+    n_max = int(round(opts.rest_s / opts.timestep_s))
+    step = 0
+    while step < n_max:
+        if (
+            float(np.abs(data.qvel[lin]).max()) <= opts.rest_speed_m_s
+            and float(np.abs(data.qvel[ang]).max()) <= opts.rest_spin_rad_s
+        ):
+            break
+        for _ in range(10):
+            mujoco.mj_step(model, data)
+        step += 10
+    if not np.all(np.isfinite(data.qpos)):
+        raise SimulationError("the grasp simulation diverged while the parts came to rest; reduce timestep_s")
+    return step
 
 
 class _Vacuum:
