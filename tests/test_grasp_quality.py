@@ -217,3 +217,41 @@ def test_suction_on_an_unexplained_object_seals_only_on_its_measured_surface() -
     assert not measured_seal(side, down_at(0.5, r), opts)  # 17 mm off its crest the side has dropped 9.5 mm
     small = QualityOptions(cup_diameter_m=0.014, seal_margin_m=0.001)
     assert measured_seal(side, down_at(0.5, r), small)  # a 16 mm footprint on the crest drops 1.7 mm
+
+
+def test_a_standing_ring_pinched_low_rolls_out_and_ranks_below_a_pinch_above_its_centre(
+    cell: CellConfig, parts: dict[str, Template]
+) -> None:
+    """A 60 mm ring standing on its rim, pinched straight down across its faces: with the squeeze line 17 mm above
+    its centre it hangs from the pads; pinched at its side, 10 mm below the centre, the squeeze line passes only
+    about 2 mm above the centre and the ring rolls in the closing jaws: with the true pose turned 9 degrees about
+    the vertical from the fit (fit noise on a standing ring, seed 500 scene 59 and seed 0 scene 68), MuJoCo misses
+    it. Both hold by the load test; the low one `rolls` and its predicted success is halved."""
+    pytest.importorskip("mujoco")
+    from normpos_grasp.loop import _physics_gripper
+    from normpos_grasp.sim.physics import validate_grasp
+
+    ring = parts["ring"]
+    floor = 0.01  # the example cell's bin floor
+    axis_x = np.column_stack([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # the ring's axis along world -x
+    fit = make_pose(axis_x, [0.5, 0.0, floor + 0.03])
+    closing = np.array([1.0, 0.0, 0.0])
+    top = _pinch(fit[:3, 3] + [0.0, -0.0137, 0.0167], closing)
+    low = _pinch(fit[:3, 3] + [0.0, 0.0205, -0.0104], closing)
+    footprint = pad_footprint(cell.tool)
+    m_top = parallel_mechanics(ring.mesh, ring.mass_kg, fit, top, footprint)
+    m_low = parallel_mechanics(ring.mesh, ring.mass_kg, fit, low, footprint)
+    assert m_top.ok and m_low.ok, (m_top, m_low)
+    assert not m_top.rolls and m_top.success == predicted_success(m_top.margin) == 1.0
+    assert m_low.rolls and m_low.success == 0.5 * predicted_success(m_low.margin)
+    off = parallel_mechanics(ring.mesh, ring.mass_kg, fit, low, footprint, QualityOptions(roll_pivot_m=0.0))
+    assert not off.rolls and off.success == predicted_success(off.margin)
+    # flat on the floor, pinched across its diameter from above: not a wheel about the squeeze line
+    flat = make_pose(None, [0.5, 0.0, floor + 0.0075])
+    across = parallel_mechanics(ring.mesh, ring.mass_kg, flat, _pinch(flat[:3, 3] + [0, 0, 0.009], closing), footprint)
+    assert across.ok and not across.rolls
+    statics = [(b.name, b.world_from_box, b.size) for b in cell.static_boxes]
+    true = make_pose(rotation_from_rotvec([0.0, 0.0, np.deg2rad(9.0)]) @ axis_x, fit[:3, 3])
+    hand = _physics_gripper(cell)
+    assert validate_grasp(ring, true, [], statics, hand, top, 0.035).outcome == "held"
+    assert validate_grasp(ring, true, [], statics, hand, low, 0.035).outcome == "missed"

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import mujoco  # noqa: F401  (a hard dependency: imported, never skipped)
 import numpy as np
 import pytest
@@ -214,3 +216,40 @@ def test_options_are_respected() -> None:
     opts = PhysicsOptions(lift_m=0.05, move_m=0.0, hold_s=0.1)
     res = validate_grasp(cube, pose, [], TABLE, GripperSpec.preset("2f85"), _tcp(pose[:3, 3]), 0.06, opts)
     assert res.lift_m == pytest.approx(0.05, abs=5e-3)
+
+
+def test_a_far_neighbour_still_carries_a_simulated_part_resting_on_it() -> None:
+    """A plate lying on a small block 0.3 m from the target: the plate comes within `neighbour_radius_m` (simulated),
+    the block does not (fixed where it is). Left out, the block let the plate fall through it onto the table,
+    8 mm into the block's volume at the end, and the next pick started from that overlap (seed 500 scene 45: a
+    plate leaning on a far ring fell flat into it; on the ring's pick MuJoCo threw the ring 5 cm clear of the
+    jaws, 'missed')."""
+    cube = _box((0.04, 0.04, 0.04))
+    pose = make_pose(translation=[0.0, 0.0, 0.02])
+    block = _box((0.02, 0.02, 0.02), name="block")
+    plate = _box((0.2, 0.2, 0.01), mass=0.2, name="plate")
+    block_pose = make_pose(translation=[0.3, 0.0, 0.01])
+    plate_pose = make_pose(translation=[0.3, 0.0, 0.025])
+    res = validate_grasp(
+        cube, pose, [(block, block_pose), (plate, plate_pose)], TABLE, GripperSpec.preset("2f85"),
+        _tcp(pose[:3, 3]), 0.06,
+    )  # fmt: skip
+    assert res.outcome == "held", res.reason
+    np.testing.assert_allclose(res.world_from_neighbours_final[0], block_pose)  # fixed: not simulated
+    assert res.world_from_neighbours_final[1][2, 3] == pytest.approx(0.025, abs=1e-3)  # still on the block
+
+
+def test_final_poses_are_where_the_parts_came_to_rest() -> None:
+    """A failed pick that lifted its part: the jaws open at lift height and the part falls. The run goes on until
+    it lies still, so the next pick starts from a part at rest, not one frozen in mid-fall (seed 0 scene 74: a bar
+    knocked on pick 3 was still tipping over, 0.3 m/s, when that run ended; pick 4 planned a leaned grasp on it,
+    and it fell flat before the jaws closed: 'missed')."""
+    cube = _box((0.04, 0.04, 0.04))
+    pose = make_pose(translation=[0.0, 0.0, 0.02])
+    opts = PhysicsOptions(slip_tolerance_m=1e-9, release_s=0.05)  # any motion is a slip; a short release
+    res = validate_grasp(cube, pose, [], TABLE, GripperSpec.preset("2f85"), _tcp(pose[:3, 3]), 0.06, opts)
+    assert res.outcome == "slip"
+    assert res.world_from_object_final[2, 3] == pytest.approx(0.02, abs=2e-3)  # back on the table
+    unrested = replace(opts, rest_s=0.0)
+    res = validate_grasp(cube, pose, [], TABLE, GripperSpec.preset("2f85"), _tcp(pose[:3, 3]), 0.06, unrested)
+    assert res.world_from_object_final[2, 3] > 0.05  # without it, frozen in mid-fall

@@ -107,4 +107,3 @@ def test_bad_options_are_refused() -> None:
         UncoveredOptions(smooth_px=4)
     with pytest.raises(InputError):
         UncoveredOptions(floor_band_m=-0.001)
-

@@ -1,11 +1,11 @@
 """Physics validation of one grasp in MuJoCo: approach, close (or seal), lift, move sideways, hold, judge.
 
 `validate_grasp` builds a MuJoCo scene holding the target (its convex decomposition, or exact primitives for
-boxes and spheres), its neighbours (free bodies in their true poses), the static cell geometry (boxes) and the
-gripper as a mocap-driven hand: a parallel-jaw gripper whose two coupled fingers close at a set speed and squeeze
-with a force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or a suction cup on a
-compliant bellows whose vacuum holds the part with pressure x area once a seal check on the true surface passed
-(MuJoCo adhesion actuator). It then replays the pick and reports:
+boxes and spheres), its neighbours (free bodies in their true poses, far ones fixed), the static cell geometry
+(boxes) and the gripper as a mocap-driven hand: a parallel-jaw gripper whose two coupled fingers close at a set
+speed and squeeze with a force limit (position servo with saturated force, like a Robotiq 2F-85's force setting), or
+a suction cup on a compliant bellows whose vacuum holds the part with pressure x area once a seal check on the true
+surface passed (MuJoCo adhesion actuator). It then replays the pick and reports:
 
 - 'collision': the hand hit the cell or a neighbour (or landed on the target before closing) harder than
   `collision_force_n` or deeper than `collision_penetration_m`: a real arm would stop;
@@ -208,9 +208,12 @@ class PhysicsOptions:
     collision_force_n / collision_penetration_m: a hand contact with the cell or a neighbour above either is a
     collision; target_collision_force_n: the same for the hand pressing on the target before closing (a protective
     stop of the arm; lighter pushes just move the part). release_s: after a failed pick the jaws open (the vacuum
-    stops) and the hand rises 5 cm for this long, so the final poses show where the parts came to rest.
-    neighbour_radius_m: neighbours whose bounding sphere comes
-    closer than this to the target's centre are simulated; the rest are left out.
+    stops) and the hand rises 5 cm for this long. rest_s / rest_speed_m_s / rest_spin_rad_s: then (after the hold
+    of a held pick too) the run goes on, the hand where it is, until no free part moves faster than
+    rest_speed_m_s and turns faster than rest_spin_rad_s, for at most rest_s: the final poses are where the parts
+    came to rest (a part still falling would start the next pick in mid-air). neighbour_radius_m: neighbours
+    whose bounding sphere comes closer than this to the target's centre are simulated; the rest stay fixed where
+    they are (a simulated part leaning on one keeps its support instead of falling through it).
     object_friction / static_friction: Coulomb friction of parts and cell geometry.
     check_every: contact checks every this many steps. seal: suction seal criteria.
     decomposition: convex decomposition settings for non-convex parts.
@@ -233,6 +236,9 @@ class PhysicsOptions:
     collision_force_n: float = 40.0
     target_collision_force_n: float = 150.0
     release_s: float = 0.5
+    rest_s: float = 1.5
+    rest_speed_m_s: float = 0.005
+    rest_spin_rad_s: float = 0.1
     collision_penetration_m: float = 0.004
     neighbour_radius_m: float = 0.25
     object_friction: float = 0.5
@@ -255,7 +261,7 @@ class PhysicsResult:
     closing. collision_with: names of what the hand hit ('' if nothing). seal: the suction seal check (None for
     parallel jaws). sim_time_s: simulated time; wall_time_s: compute time. n_pieces: convex pieces of the target.
     world_from_object_final (4, 4) / world_from_neighbours_final (K, 4, 4): poses at the end of the run (the
-    target where it ended, in the hand or not; neighbours left out of the simulation keep their poses).
+    target where it ended, in the hand or not; neighbours held fixed keep their poses).
     """
 
     outcome: str
@@ -394,7 +400,10 @@ def _object_body_xml(
     pieces: list[tuple[str, FloatArray]],
     friction: float,
     assets: list[str],
+    fixed: bool = False,
 ) -> str:
+    """MJCF body of a part at `world_from_object`: a free body, or with `fixed` one welded where it is (it carries
+    what rests on it and does not move)."""
     mesh = template.mesh
     volume = max(float(mesh.volume), 1e-12)
     inertia = np.asarray(mesh.moment_inertia, dtype=np.float64) * (template.mass_kg / volume)
@@ -414,9 +423,10 @@ def _object_body_xml(
             assets.append(f'<mesh name="{name}_m{j}" vertex="{_fmt(data)}" inertia="convex"/>')
             geoms.append(f'<geom type="mesh" mesh="{name}_m{j}" {common}/>')
     pose = world_from_object
+    joint = "" if fixed else f'<freejoint name="{name}_free"/>'
     return (
         f'<body name="{name}" pos="{_fmt(pose[:3, 3])}" quat="{_fmt(_quat_wxyz(pose[:3, :3]))}">'
-        f'<freejoint name="{name}_free"/>'
+        f"{joint}"
         f'<inertial pos="{_fmt(com)}" mass="{template.mass_kg:.12g}" fullinertia="{full}"/>'
         f"{''.join(geoms)}</body>"
     )
@@ -595,13 +605,14 @@ def validate_grasp(
         neighbour_poses.append(pose)
         sphere = tmpl.mesh.bounding_sphere.primitive
         c = pose[:3, :3] @ np.asarray(sphere.center) + pose[:3, 3]
-        if np.linalg.norm(c - centre) - float(sphere.radius) > opts.neighbour_radius_m:
-            continue
-        kept += 1
-        simulated.append(i)
+        far = bool(np.linalg.norm(c - centre) - float(sphere.radius) > opts.neighbour_radius_m)
+        if not far:
+            kept += 1
+            simulated.append(i)
         lowest = min(lowest, float((np.asarray(tmpl.mesh.vertices) @ pose[:3, :3].T + pose[:3, 3])[:, 2].min()))
         pieces = collision_pieces(tmpl, opts.decomposition)
-        bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets))
+        # a far neighbour stays in the scene, fixed where it is: a simulated part leaning on it keeps its support
+        bodies.append(_object_body_xml(f"nb{i}", tmpl, pose, pieces, opts.object_friction, assets, fixed=far))
     statics = _static_geoms(static_boxes, opts.static_friction, lowest)
     pre = w_tcp @ make_pose(translation=[0.0, 0.0, -opts.approach_m])
     opening = min(opening_m, spec.stroke_m) if spec.kind == "parallel" else 0.0
@@ -758,6 +769,7 @@ def validate_grasp(
         outcome, reason = "held", ""
     if outcome != "held" and opts.release_s > 0:
         step += _release(model, data, spec, mocap, np.asarray(data.mocap_pos[mocap], dtype=np.float64), opts)
+    step += _come_to_rest(model, data, opts)
     sim_time = step * dt
     final_neighbours = np.array(neighbour_poses, dtype=np.float64).reshape(-1, 4, 4)
     for i in simulated:
@@ -806,6 +818,36 @@ def _release(
     if not np.all(np.isfinite(data.qpos)):
         raise SimulationError("the grasp simulation diverged while releasing; reduce timestep_s")
     return n_steps
+
+
+def _come_to_rest(model: mujoco.MjModel, data: mujoco.MjData, opts: PhysicsOptions) -> int:
+    """Step on (the hand's controls as they are) until no free part moves faster than `opts.rest_speed_m_s` or
+    turns faster than `opts.rest_spin_rad_s`, checked every 10 steps, for at most `opts.rest_s`; returns steps."""
+    import mujoco
+
+    dofs = [
+        int(model.jnt_dofadr[j])
+        for j in range(model.njnt)
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE and not model.joint(j).name.startswith("hand")
+    ]
+    if not dofs or opts.rest_s <= 0:
+        return 0
+    lin = np.array([[d, d + 1, d + 2] for d in dofs])
+    ang = lin + 3
+    n_max = int(round(opts.rest_s / opts.timestep_s))
+    step = 0
+    while step < n_max:
+        if (
+            float(np.abs(data.qvel[lin]).max()) <= opts.rest_speed_m_s
+            and float(np.abs(data.qvel[ang]).max()) <= opts.rest_spin_rad_s
+        ):
+            break
+        for _ in range(10):
+            mujoco.mj_step(model, data)
+        step += 10
+    if not np.all(np.isfinite(data.qpos)):
+        raise SimulationError("the grasp simulation diverged while the parts came to rest; reduce timestep_s")
+    return step
 
 
 class _Vacuum:

@@ -628,7 +628,16 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             cause = "collision"
         else:
             cause = "physics_drop"
+        others = [j for j in range(len(templates)) if j != k]
+        # parts the hand took out with the target (clamped beside it, or lying on it): they go to the place with it
+        carried = (
+            [others[n] for n in carried_out(poses[others], result.world_from_neighbours_final, result.lift_m)]
+            if result.success
+            else []
+        )
         detail, name = "", ""
+        if carried:
+            detail = "also carried out: " + ", ".join(templates[j].name for j in carried)
         if cause:
             detail = _failure_detail(cause, result, target.template == templates[k].name)
             name = _picture_name(scene_index, pick)
@@ -640,9 +649,8 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
                 fit_err, len(templates), counts, pipeline_ms, physics_ms, result.reason, detail, name, origin,
             )
         )  # fmt: skip
-        # the scene as physics left it
-        others = [j for j in range(len(templates)) if j != k]
-        new_poses = {j: result.world_from_neighbours_final[n] for n, j in enumerate(others)}
+        # the scene as physics left it, less what left with the hand
+        new_poses = {j: result.world_from_neighbours_final[n] for n, j in enumerate(others) if j not in carried}
         if not result.success:
             new_poses[k] = result.world_from_object_final
             failures += 1
@@ -757,6 +765,20 @@ def _floor_pose(layout: Any) -> FloatArray:
     """Pose (scene frame) of the bin floor's top centre."""
     centre = np.asarray(layout.container_centre(), dtype=np.float64)
     return make_pose(None, centre)
+
+
+def carried_out(before: FloatArray, after: FloatArray, lift_m: float) -> list[int]:
+    """Indices of the neighbours (poses (K, 4, 4) before and after a held pick) that rose with the hand by more
+    than half the target's lift `lift_m` (m; physics' own test of a lifted target): clamped between the jaws beside
+    the target or lying on it, they leave the bin with it. Left at their last pose they would hang in the air where
+    the physics run ended, and the next pick would be judged on a part falling from there."""
+    rise = (
+        np.asarray(after, dtype=np.float64).reshape(-1, 4, 4)[:, 2, 3]
+        - np.asarray(before, dtype=np.float64).reshape(-1, 4, 4)[:, 2, 3]
+    )
+    if not lift_m > 0.0:
+        return []
+    return [int(j) for j in np.flatnonzero(rise > 0.5 * lift_m)]
 
 
 def _in_bin(pose: FloatArray, cell: Any, floor_z: float) -> bool:
