@@ -15,13 +15,7 @@ point along the closing axis. From that patch:
   torque about the squeeze line (the centre of mass off that line: the bar turning in the jaws), against what
   the pads hold at the grip force, mu F per pad for the force and mu F mean(rho) + mu_t F per pad for the torque
   (uniform pressure on the patch, rho the patch points' distance from the squeeze line; mu_t the pads' torsional
-  friction length), combined on an elliptic limit surface: (f / f_max)^2 + (tau / tau_max)^2 <= 1;
-- rolling: a wheel-like part pinched across its faces (its outline round about the squeeze line, thin along it: a
-  ring standing on its rim) rolls in the closing jaws unless the squeeze line passes well above its centre of mass;
-  such a grasp (`GraspMechanics.rolls`) keeps its verdict but its predicted success is scaled down, so that a pinch
-  above the centre ranks first (a 60 mm ring standing on its rim, its true pose turned 9 degrees either way about
-  the vertical from the fit: 11 of the 27 straight-down pinches whose squeeze line passed less than 6 mm above the
-  centre missed or dropped it in MuJoCo, 1 of the 56 passing higher).
+  friction length), combined on an elliptic limit surface: (f / f_max)^2 + (tau / tau_max)^2 <= 1.
 Suction: the cup footprint must seal on the FITTED surface (`sim.physics_suction.check_seal` on the template in
 its fitted pose: every ray under the cup hits, height spread within the lip's compliance, normals facing the cup),
 the vacuum force must carry the weight times `load_factor`, and the payload torque about the cup's rim (weight
@@ -74,12 +68,7 @@ class QualityOptions:
     cup; `judge` takes the tool's own cup); seal_flatness_m / seal_normal_rad: the seal criteria
     (`sim.physics_suction.SealOptions`); seal_margin_m: the error of the fitted pose the seal must tolerate: the
     footprint checked is the cup widened by this on every side (a 30 mm cup on a 30 mm face seals only when the fit
-    is exact, and a real part sits a millimetre or two from its fit), m. roll_pivot_m: a wheel-like part's squeeze
-    line must pass at least this far above its centre of mass (world z), m, or the grasp `rolls`; roll_success: the
-    factor on a rolling grasp's predicted success (0.5: 11 of 27 such pinches lost the ring in that measurement);
-    wheel_roundness / wheel_thickness_share: a part is wheel-like about the squeeze line when its outline's
-    smallest radius about the line through its centre of mass is at least `wheel_roundness` of the largest, and its
-    extent along the line less than `wheel_thickness_share` of that diameter (a ball is round too, but not thin).
+    is exact, and a real part sits a millimetre or two from its fit), m.
     """
 
     friction: float = 0.9
@@ -96,10 +85,6 @@ class QualityOptions:
     seal_flatness_m: float = 0.004
     seal_normal_rad: float = 0.45
     seal_margin_m: float = 0.002
-    roll_pivot_m: float = 0.006
-    roll_success: float = 0.5
-    wheel_roundness: float = 0.95
-    wheel_thickness_share: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -108,9 +93,7 @@ class GraspMechanics:
     (-inf, 1]: 1 - load ratio, cut by the cone and area margins (<= 0 when not ok); success: predicted success
     probability (`predicted_success(margin)`); area_m2: smaller pad patch (parallel) or cup area (suction);
     cone_angle_rad: largest angle of the touched normals (or of the squeeze line) from the pad normal;
-    load_ratio: the limit-surface ratio (force and torque over what the grip holds); rolls: a wheel-like part
-    pinched across its faces with the squeeze line not far enough above its centre of mass (`success` is scaled by
-    `QualityOptions.roll_success`)."""
+    load_ratio: the limit-surface ratio (force and torque over what the grip holds)."""
 
     ok: bool
     reason: str
@@ -119,7 +102,6 @@ class GraspMechanics:
     area_m2: float
     cone_angle_rad: float
     load_ratio: float
-    rolls: bool = False
 
 
 def predicted_success(margin: float) -> float:
@@ -237,33 +219,7 @@ def parallel_mechanics(
     margin = min(1.0 - ratio, 1.0 - worst_angle / cone, area / (area + opts.min_area_m2))
     if ratio >= 1.0:
         return GraspMechanics(False, "slip_torque", min(margin, 0.0), 0.0, area, worst_angle, ratio)
-    success = predicted_success(margin)
-    # a wheel pinched across its faces rolls in the jaws unless they hold it well above its centre of mass
-    up = -g_tcp  # world up in the TCP frame
-    rolls = bool(
-        opts.roll_pivot_m > 0.0
-        and abs(up[0]) < 0.5  # the squeeze line within 30 degrees of horizontal: the part can roll about it
-        and float((mid - com) @ up) < opts.roll_pivot_m
-        and _wheel_about_closing_axis(p, com, opts.wheel_roundness, opts.wheel_thickness_share)
-    )
-    if rolls:
-        success *= opts.roll_success
-    return GraspMechanics(True, "", margin, success, area, worst_angle, ratio, rolls)
-
-
-def _wheel_about_closing_axis(points: FloatArray, com: FloatArray, roundness: float, thickness_share: float) -> bool:
-    """Whether surface points (N, 3) in the TCP frame outline a wheel about the closing axis (x) through `com` (3,):
-    the largest radius about that line in each of 24 sectors at least `roundness` of the largest overall, and the
-    extent along x under `thickness_share` of the diameter."""
-    q = points[:, 1:] - com[1:]
-    r = np.hypot(q[:, 0], q[:, 1])
-    sector = np.floor((np.arctan2(q[:, 1], q[:, 0]) + np.pi) / (2.0 * np.pi) * 24.0).astype(np.int64) % 24
-    outline = np.zeros(24)
-    np.maximum.at(outline, sector, r)
-    radius = float(outline.max())
-    if radius <= 0.0 or float(outline.min()) < roundness * radius:
-        return False
-    return float(np.ptp(points[:, 0])) < thickness_share * 2.0 * radius
+    return GraspMechanics(True, "", margin, predicted_success(margin), area, worst_angle, ratio)
 
 
 def suction_mechanics(
