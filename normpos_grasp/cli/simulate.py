@@ -111,6 +111,12 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="only push parts when no grasp is feasible (default: also drag parts out from walls and corners)",
     )
+    parser.add_argument(
+        "--no-uncovered",
+        action="store_true",
+        help="plan with what was segmented only (default: surfaces no instance covers are obstacles too, "
+        "measure.uncovered)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.set_defaults(handler=run)
 
@@ -173,6 +179,7 @@ def _run(args: argparse.Namespace) -> int:
         relaxed_plan=not args.no_relaxed_plan,
         pick_unmatched=not args.no_pick_unmatched,
         drags=not args.no_drags,
+        uncovered=not args.no_uncovered,
     )
     if cell.bin is None or (cell.world_from_camera is None and cell.wrist_camera is None):
         raise InputError(

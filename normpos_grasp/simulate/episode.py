@@ -86,6 +86,8 @@ class SimulationConfig:
     out by an arm motion planned and judged like a pick's (`planning.push.judged_push_motion`: collision-checked,
     within the cell's joint, speed and workspace caps); of the `nudge_candidates` best drags (then pushes), the
     first with such a motion is made.
+    uncovered: surfaces no instance covers are obstacles for the planner (`measure.uncovered`, as `process_frame`
+    does); False: only what was segmented.
     clutter / stack_layers: scene composition (see sim.scene.SceneOptions).
     gripper: preset or packaged gripper name overriding the cell's tool for physics ('' = the cell's tool).
     resolution: (W, H) image size, pixels. physics: physics options.
@@ -113,6 +115,7 @@ class SimulationConfig:
     max_nudges: int = 2
     nudge_m: float = 0.05
     drags: bool = True
+    uncovered: bool = True
     drag_m: float = 0.08
     nudge_candidates: int = 4
     relaxed_evaluation: EvaluationOptions = field(
@@ -475,7 +478,11 @@ def run_scene(config: SimulationConfig, scene_index: int) -> SceneResult:
             captures += 1
             fitted += len(seen.fits) - seen.result.reused_fits
             reused += seen.result.reused_fits
-            uncovered = uncovered_points(seen.frame.frame, [i.mask for i in seen.instances], cell.bins)
+            uncovered = (
+                uncovered_points(seen.frame.frame, [i.mask for i in seen.instances], cell.bins)
+                if config.uncovered
+                else None
+            )
             plan = plan_pick(seen.fits, seen.normpositions, cell, plan_options, start_q, uncovered)
             relaxed_used = False
             if plan.status != "ok" and config.relaxed_plan:
