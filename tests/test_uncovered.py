@@ -37,6 +37,11 @@ def cell() -> CellConfig:
 def test_an_empty_bin_under_d435_noise_leaves_no_point(cell: CellConfig, seed: int) -> None:
     frame = SyntheticBinSource(cell, count=0, seed=seed, validate_physics=False).capture()
     assert len(uncovered_points(frame, [], cell.bins)) == 0
+    # two bins, one seen from the side: its far wall, seen at a slant, must not lift the floor beside it (heights are
+    # averaged over the bin's own uncovered pixels: with the wall's in the window 50-60 floor points passed the band)
+    two = load_cell(CELL.parent / "ur5e_two_bins.yaml")
+    frame = SyntheticBinSource(two, count=0, seed=seed, validate_physics=False).capture()
+    assert len(uncovered_points(frame, [], two.bins)) == 0
     # the walls and the floor are what a zero band would report: the bands are what keeps them out
     bare = uncovered_points(frame, [], cell.bins, UncoveredOptions(floor_band_m=-0.0, wall_band_m=0.0, smooth_px=1))
     assert len(bare) > 1000

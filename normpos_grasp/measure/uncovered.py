@@ -87,9 +87,7 @@ def uncovered_points(
     rays = pixel_rays(camera)[::s, ::s]
     rx, ry = rays[:, :, 0], rays[:, :, 1]
     pose = np.asarray(camera.world_from_camera, dtype=np.float64)
-    weight = free.astype(np.float32)  # heights averaged over uncovered pixels only: a part does not lift its border
     k = (opts.smooth_px, opts.smooth_px)
-    count = cv2.boxFilter(weight, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
     inside = np.zeros(valid.shape, dtype=bool)
     for b in bins:
         m = invert_pose(b.world_from_bin) @ pose  # bin_from_camera: a pixel's bin coordinates are d (m0 u + m1 v + m2)
@@ -99,6 +97,10 @@ def uncovered_points(
         near_floor = interior & (np.abs(z) <= opts.floor_search_m)
         level = float(np.median(z[near_floor])) if near_floor.sum() >= 50 else 0.0
         level = float(np.clip(level, -opts.floor_search_m / 3.0, opts.floor_search_m / 3.0))
+        # heights averaged over the uncovered pixels inside the bin only: neither a part nor a wall seen at a slant
+        # lifts the floor beside it
+        weight = (free & interior).astype(np.float32)
+        count = cv2.boxFilter(weight, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
         summed = cv2.boxFilter((z * weight).astype(np.float32), -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
         mean_z = summed / np.maximum(count, 1.0)
         inside |= interior & (mean_z >= level + opts.floor_band_m) & (z <= h + opts.above_rim_m)
