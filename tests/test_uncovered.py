@@ -112,3 +112,23 @@ def test_bad_options_are_refused() -> None:
         UncoveredOptions(smooth_px=4)
     with pytest.raises(InputError):
         UncoveredOptions(floor_band_m=-0.001)
+
+
+def test_a_bin_holding_only_what_the_segmenter_missed_is_not_called_empty(cell: CellConfig) -> None:
+    from normpos_grasp.planning.plan import stop_line
+
+    unseen = _slab(0.45, 0.5, -0.03, 0.02, FLOOR_Z + 0.02)  # a surface 2 cm high that no instance covers
+    plan = plan_pick([], [], cell, uncovered=unseen)
+    assert plan.status == "no_feasible_grasp" and plan.uncovered_voxels > 0
+    assert plan.to_json()["uncovered_voxels"] == plan.uncovered_voxels
+    assert "surfaces no instance covers remain" in stop_line(plan)
+    bare = plan_pick([], [], cell)
+    assert bare.uncovered_voxels == 0 and "uncovered_voxels" not in bare.to_json()
+    assert "nothing perceived as a known part" in stop_line(bare)
+    # several bins: the bin holding only such a surface is not among the empty ones; a cube in the other is picked
+    two = load_cell(CELL.parent / "ur5e_two_bins.yaml")
+    cube = _cube_fit(0.5, -0.175)
+    left_only = _slab(0.45, 0.5, 0.15, 0.2, FLOOR_Z + 0.02)
+    plan = plan_pick([cube], [], two, uncovered=left_only)
+    assert plan.status == "ok" and plan.bin == "right" and plan.bins_empty == ()
+    assert plan_pick([cube], [], two).bins_empty == ("left",)

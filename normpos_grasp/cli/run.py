@@ -315,6 +315,12 @@ def run(args: argparse.Namespace) -> int:
                     if record.status == "no_feasible_grasp" and cands.get("rejected_by_reason"):
                         reasons = sorted(cands["rejected_by_reason"].items(), key=lambda kv: -kv[1])
                         print("  rejected: " + ", ".join(f"{k} {v}" for k, v in reasons), flush=True)
+                    if record.status == "no_feasible_grasp" and doc.get("uncovered_voxels"):
+                        print(
+                            f"  {doc['uncovered_voxels']} clutter voxels of surfaces no instance covers remain in the "
+                            "bin: parts the segmenter did not find?",
+                            flush=True,
+                        )
                     if out is not None:
                         if record.plan_json is not None:
                             _write_json(out / f"plan_{record.index + 1:02d}.json", record.plan_json)

@@ -52,6 +52,8 @@ from normpos_grasp.typing import BoolArray, FloatArray
 logger = logging.getLogger(__name__)
 
 WAYPOINTS = ("home", "entry", "pre_grasp", "grasp", "lift", "retreat", "pre_place", "place", "post_place")
+#: the world's name of the clutter built from surfaces no instance covers (its voxels are UNCOVERED/<k>)
+UNCOVERED = "clutter/uncovered"
 #: `PickPlan.planning_pass` of a plan with a grasp, in the order `_plan_tool` runs the passes
 PLANNING_PASSES = ("first", "turned", "leaned")
 
@@ -188,7 +190,7 @@ def build_world(
             pts = _unexplained(pts, targets, opts.neighbour_tolerance_m)
         pts = _drop_outliers(pts, cell.voxel_m, opts.clutter_min_points)
         if len(pts):
-            world.add_points("clutter/uncovered", pts, cell.voxel_m, "clutter")
+            world.add_points(UNCOVERED, pts, cell.voxel_m, "clutter")
     return world, targets, templates
 
 
@@ -257,6 +259,7 @@ def plan_pick(
     timing: dict[str, float] = {}
     arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
     world, targets, templates = build_world(cell, fits, normpositions, arm, opts, uncovered)
+    n_uncovered = sum(1 for name in world.elements if name.startswith(UNCOVERED + "/"))
     world.set_arm(arm)
     timing["world"] = (time.perf_counter() - t_start) * 1e3
     home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
@@ -266,9 +269,8 @@ def plan_pick(
         world.set_tool(tool)
         world.update()
         plans.append(_plan_tool(targets, templates, normpositions, world, arm, one, home, opts, dict(timing), t_start))
-    if len(plans) == 1:
-        return plans[0]
-    return _best_tool_plan(plans, opts)
+    plan = plans[0] if len(plans) == 1 else _best_tool_plan(plans, opts)
+    return replace(plan, uncovered_voxels=n_uncovered) if n_uncovered else plan
 
 
 def _plan_tool(
@@ -477,14 +479,18 @@ def _plan_bins(
     """`plan_pick` in a cell with several bins: the bins in turn from `cell.bin` on, each with a part in it and a
     free place of its own, planned as a one-bin cell (its walls for the candidates, its rim for the entry and exit,
     its places) in the shared world; the first plan found is returned with `bin` and `bins_empty` set (a bin is
-    empty when neither a target nor a measured norm-position lies in it: a part whose fit was rejected still fills
-    its bin). Without one: status 'no_feasible_grasp' with every bin's evaluations and rejection counts."""
+    empty when neither a target, a measured norm-position nor a surface no instance covers lies in it: a part whose
+    fit was rejected, or one the segmenter missed, still fills its bin). Without one: status 'no_feasible_grasp'
+    with every bin's evaluations and rejection counts."""
     assert cell.bin is not None
     names = [b.name for b in cell.bins]
     start = names.index(cell.bin.name)
     order = [cell.bins[(start + k) % len(names)] for k in range(len(names))]
     held_in = target_bins(cell, targets)
     seen = set(held_in) | {b.name for n in normpositions if (b := cell.bin_of(n.centroid)) is not None}
+    for name, element in world.elements.items():  # surfaces no instance covers fill their bin too
+        if name.startswith(UNCOVERED + "/") and (b := cell.bin_of(0.5 * (element.lo + element.hi))) is not None:
+            seen.add(b.name)
     empty = tuple(b.name for b in cell.bins if b.name not in seen)
     outside = [t.name for t, b in zip(targets, held_in, strict=True) if not b]
     if outside:
@@ -1158,6 +1164,11 @@ def stop_line(plan: PickPlan, max_reasons: int = 3) -> str:
     and the closest call."""
     rows = rejections_by_target(plan)
     if not plan.targets:
+        if plan.uncovered_voxels:
+            return (
+                "no feasible grasp: no accepted template fit to pick, but surfaces no instance covers remain in the "
+                f"bin ({plan.uncovered_voxels} clutter voxels): parts the segmenter did not find?"
+            )
         return "no feasible grasp: no accepted template fit to pick (nothing perceived as a known part)"
     parts = []
     for r in rows:

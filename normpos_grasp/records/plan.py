@@ -103,7 +103,10 @@ class PickPlan:
     several bins (plan.json then carries "bin" and "bins_empty"; '' and () in a one-bin cell).
     planning_pass: the planning pass whose candidates gave the chosen grasp ('first': as synthesised; 'turned': a
     dual-tool flange's copies turned about the approach axis; 'leaned': copies leaned away from the cell's boxes;
-    `planning.plan.PLANNING_PASSES`), '' for a plan with no grasp."""
+    `planning.plan.PLANNING_PASSES`), '' for a plan with no grasp. uncovered_voxels: clutter voxels the planner
+    built from surfaces no instance covers (`measure.uncovered`: what the segmenter missed; plan.json carries
+    "uncovered_voxels" when there are any): a plan with nothing to pick and uncovered voxels did not find the bin
+    empty."""
 
     status: PlanStatus
     robot: str
@@ -122,6 +125,7 @@ class PickPlan:
     bin: str = ""
     bins_empty: tuple[str, ...] = ()
     planning_pass: str = ""
+    uncovered_voxels: int = 0
 
     def to_json(self) -> dict[str, Any]:
         """The documented plan.json mapping (docs/grasping.md)."""
@@ -153,6 +157,8 @@ class PickPlan:
         if self.bin or self.bins_empty:
             out["bin"] = self.bin
             out["bins_empty"] = list(self.bins_empty)
+        if self.uncovered_voxels:
+            out["uncovered_voxels"] = int(self.uncovered_voxels)
         if self.chosen is not None:
             c = self.chosen.candidate
             t = self.targets[c.target]
