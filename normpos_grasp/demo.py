@@ -290,9 +290,9 @@ def stop_reason(records: list[PickRecord], left: int) -> tuple[str, list[dict[st
     if last.status == "no_feasible_grasp":
         if plan is None:
             return f"no plan: nothing was perceived to pick ({left} part(s) left)", []
-        if not plan.targets and plan.uncovered_voxels and not last.result.instances:
-            return f"{stop_line(plan)} ({left} part(s) left)", []
         if not plan.targets:
+            if plan.uncovered_voxels and not last.result.instances:
+                return f"{stop_line(plan)} ({left} part(s) left)", []
             fits = last.result.fits
             why = "; ".join(f"{f.template.name}: {f.reason}" for f in fits if not f.accepted)[:300]
             return (

@@ -185,13 +185,17 @@ def build_world(
         if len(pts):
             world.add_points(f"clutter/{np_.instance_id}", pts, cell.voxel_m, "clutter")
     if uncovered is not None and len(uncovered):
-        pts = np.asarray(uncovered, dtype=np.float64).reshape(-1, 3)
-        if targets:
-            pts = _unexplained(pts, targets, opts.neighbour_tolerance_m)
+        pts = _unexplained(np.asarray(uncovered, dtype=np.float64).reshape(-1, 3), targets, opts.neighbour_tolerance_m)
         pts = _drop_outliers(pts, cell.voxel_m, opts.clutter_min_points)
         if len(pts):
             world.add_points(UNCOVERED, pts, cell.voxel_m, "clutter")
     return world, targets, templates
+
+
+def _uncovered_centres(world: CollisionWorld) -> FloatArray:
+    """(K, 3) centres of the world's voxels built from surfaces no instance covers (`build_world`'s UNCOVERED), m."""
+    boxes = [0.5 * (e.lo + e.hi) for name, e in world.elements.items() if name.startswith(UNCOVERED + "/")]
+    return np.asarray(boxes, dtype=np.float64).reshape(-1, 3)
 
 
 def _drop_outliers(points: FloatArray, radius_m: float, min_points: int) -> FloatArray:
@@ -259,7 +263,7 @@ def plan_pick(
     timing: dict[str, float] = {}
     arm = ArmModel.from_name(cell.robot_model, cell.world_from_base)
     world, targets, templates = build_world(cell, fits, normpositions, arm, opts, uncovered)
-    n_uncovered = sum(1 for name in world.elements if name.startswith(UNCOVERED + "/"))
+    n_uncovered = len(_uncovered_centres(world))
     world.set_arm(arm)
     timing["world"] = (time.perf_counter() - t_start) * 1e3
     home = np.asarray(cell.home_q if start_q is None else start_q, dtype=np.float64)
@@ -488,9 +492,7 @@ def _plan_bins(
     order = [cell.bins[(start + k) % len(names)] for k in range(len(names))]
     held_in = target_bins(cell, targets)
     seen = set(held_in) | {b.name for n in normpositions if (b := cell.bin_of(n.centroid)) is not None}
-    for name, element in world.elements.items():  # surfaces no instance covers fill their bin too
-        if name.startswith(UNCOVERED + "/") and (b := cell.bin_of(0.5 * (element.lo + element.hi))) is not None:
-            seen.add(b.name)
+    seen |= {b.name for c in _uncovered_centres(world) if (b := cell.bin_of(c)) is not None}  # what was missed
     empty = tuple(b.name for b in cell.bins if b.name not in seen)
     outside = [t.name for t, b in zip(targets, held_in, strict=True) if not b]
     if outside:
